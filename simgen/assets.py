@@ -12,7 +12,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-__all__ = ["simgen_home", "bundled_dir", "user_dir", "search_dirs"]
+__all__ = ["simgen_home", "bundled_dir", "user_dir", "search_dirs", "body_asset_id"]
 
 _PACKAGE_DIR = Path(__file__).resolve().parent
 
@@ -44,3 +44,8 @@ def search_dirs(kind: str, body_id: str = "open") -> list[Path]:
     if body_id == "open":
         dirs.append(bundled_dir(kind))
     return dirs
+
+
+def body_asset_id(body) -> str:
+    """Asset folder name for a body: "open" for the bundled default, else its model_id."""
+    return "open" if getattr(body, "name", None) == "open" else body.model_id
