@@ -192,6 +192,9 @@ class BodyModel:
             n = max(n, trans.shape[0])
         b = self.check_betas(np.zeros(self.num_betas) if betas is None else betas, batch=n)
         n = b.shape[0]
+        for label, given in (("pose", pose), ("trans", trans)):
+            if given is not None and given.shape[0] not in (1, n):
+                raise InputError(f"{label} has batch size {given.shape[0]} but betas has {n}")
         pose = np.zeros((n, NUM_JOINTS, 3)) if pose is None else np.broadcast_to(pose, (n, NUM_JOINTS, 3))
         trans = np.zeros((n, 3)) if trans is None else np.broadcast_to(trans, (n, 3))
 
