@@ -23,7 +23,8 @@ from simgen.errors import InputError
 
 __all__ = [
     "BodyModel", "BodyOutput", "SMPL_JOINT_NAMES", "SMPL_PARENTS", "NUM_JOINTS", "load", "load_body_file",
-    "OPEN_BODY_PATH", "TorchBody", "WarpBody", "axis_angle_to_matrix_torch",
+    "OPEN_BODY_PATH", "TorchBody", "WarpBody", "axis_angle_to_matrix_torch", "bake_open_body", "describe_body",
+    "format_body_description", "SurfaceProjection", "project_to_surface",
 ]
 
 OPEN_BODY_PATH = Path(__file__).resolve().parent / "data" / "open.npz"
@@ -35,6 +36,9 @@ _LAZY = {
     "WarpBody": ("simgen.body.warp_lbs", "WarpBody"),
     "bake_open_body": ("simgen.body.bake", "bake_open_body"),
     "describe_body": ("simgen.body.describe", "describe_body"),
+    "format_body_description": ("simgen.body.describe", "format_body_description"),
+    "SurfaceProjection": ("simgen.body.surface", "SurfaceProjection"),
+    "project_to_surface": ("simgen.body.surface", "project_to_surface"),
 }
 
 
