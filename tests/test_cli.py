@@ -1,0 +1,192 @@
+"""The `simgen` command: help everywhere, one-sentence errors with exit code 2 and nothing written,
+and the demo / export / render paths end to end on a few frames."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from simgen.cli import app, main
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def run_main(argv: list[str], capsys) -> tuple[int, str, str]:
+    """Run the CLI entry point in-process; returns (exit code, stdout, stderr)."""
+    try:
+        main(argv)
+        code = 0
+    except SystemExit as exc:
+        code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
+    out = capsys.readouterr()
+    return code, out.out, out.err
+
+
+def all_command_paths() -> list[list[str]]:
+    """Every command and group of the typer app, as argv prefixes."""
+    import typer.main
+
+    root = typer.main.get_command(app)
+    paths: list[list[str]] = []
+
+    def walk(cmd, prefix):
+        paths.append(prefix)
+        for name, sub in getattr(cmd, "commands", {}).items():
+            walk(sub, prefix + [name])
+
+    walk(root, [])
+    return paths
+
+
+def test_help_lists_commands(capsys):
+    code, out, _ = run_main(["--help"], capsys)
+    assert code == 0
+    for name in ("demo", "render", "body", "motion", "export"):
+        assert name in out
+
+
+@pytest.mark.parametrize("path", all_command_paths(), ids=lambda p: " ".join(p) or "simgen")
+def test_every_command_has_help(path, capsys):
+    code, out, _ = run_main(path + ["--help"], capsys)
+    assert code == 0
+    assert "Usage" in out
+
+
+@pytest.mark.parametrize(
+    "argv, needle",
+    [
+        (["demo", "--betas", "1,x"], "--betas"),
+        (["demo", "--betas", ",".join(["0.5"] * 11)], "11 values"),
+        (["demo", "--motion", "no_such_motion"], "no_such_motion"),
+        (["demo", "--body", "missing_model.pkl"], "missing_model.pkl"),
+        (["demo", "--frames", "0"], "--frames"),
+        (["export", "usd", "--motion", "walk", "--out", "body.txt"], "body.txt"),
+        (["motion", "list", "--split", "validation"], "--split"),
+    ],
+)
+def test_bad_input_is_one_sentence_exit_2_nothing_written(argv, needle, capsys, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    out_dir = tmp_path / "out"
+    if argv[0] in ("demo",):
+        argv = argv + ["--out", str(out_dir)]
+    code, _, err = run_main(argv, capsys)
+    assert code == 2
+    assert needle in err
+    assert "Traceback" not in err
+    assert len([line for line in err.strip().splitlines() if line.strip()]) <= 3  # one sentence, maybe wrapped
+    assert not out_dir.exists()
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_corrupt_smpl_file_exit_2(capsys, tmp_path):
+    bad = tmp_path / "SMPL_NEUTRAL.npz"
+    bad.write_bytes(b"PK\x03\x04 this is not really a zip archive")
+    code, _, err = run_main(["body", "info", "--body", str(bad)], capsys)
+    assert code == 2
+    assert "SMPL_NEUTRAL.npz" in err
+
+
+def test_body_info(capsys):
+    code, out, _ = run_main(["body", "info"], capsys)
+    assert code == 0
+    assert "13,348" in out and "pelvis" in out
+
+
+def test_demo_writes_valid_usd_mp4_png(capsys, tmp_path):
+    import imageio
+
+    from simgen.io.usd import read_usd_meshes, validate_usd
+
+    out_dir = tmp_path / "demo"
+    code, out, err = run_main(["demo", "--out", str(out_dir), "--frames", "6"], capsys)
+    assert code == 0, err
+    usd = out_dir / "jumping_jacks.usdc"
+    mp4 = out_dir / "jumping_jacks.mp4"
+    png = out_dir / "jumping_jacks.png"
+    for path in (usd, mp4, png):
+        assert str(path) in out and path.stat().st_size > 0
+    assert validate_usd(usd) == []
+    meshes = read_usd_meshes(usd)
+    body = meshes["body"]
+    assert body.points.shape[:2] == (6, 13348)
+    # The body moves: the clip's frames differ.
+    assert np.abs(body.points[-1] - body.points[0]).max() > 1e-3
+    assert imageio.get_reader(mp4).count_frames() == 6
+
+
+def test_export_usd_with_betas_changes_the_body(capsys, tmp_path):
+    from simgen.io.usd import read_usd_meshes, validate_usd
+
+    tall, short = tmp_path / "tall.usda", tmp_path / "short.usda"
+    assert run_main(["export", "usd", "--motion", "walk", "--frames", "2", "--betas", "2", "--out", str(tall)],
+                    capsys)[0] == 0
+    assert run_main(["export", "usd", "--motion", "walk", "--frames", "2", "--betas", "-2", "--out", str(short)],
+                    capsys)[0] == 0
+    assert validate_usd(tall) == [] and validate_usd(short) == []
+    h_tall = np.ptp(read_usd_meshes(tall)["body"].points[0][:, 1])
+    h_short = np.ptp(read_usd_meshes(short)["body"].points[0][:, 1])
+    assert h_tall > h_short + 0.2  # +beta[0] is taller, ~10 cm per unit
+
+
+def test_motion_list_has_library_and_split(capsys):
+    import json
+
+    code, out, _ = run_main(["motion", "list", "--json"], capsys)
+    assert code == 0
+    rows = json.loads(out)
+    names = {r["name"] for r in rows}
+    assert {"walk", "run", "jumping_jacks"} <= names
+    assert sum(r["split"] == "test" for r in rows) >= 3
+
+
+def test_motion_import_goes_to_simgen_home(capsys, tmp_path, monkeypatch):
+    from simgen.motion import load_motion
+
+    home = tmp_path / "home"
+    monkeypatch.setenv("SIMGEN_HOME", str(home))
+    bvh = REPO.parent / "shared" / "mocap" / "cmu" / "131_03.bvh"
+    if not bvh.exists():
+        pytest.skip("shared CMU clips not present")
+    code, out, err = run_main(["motion", "import", str(bvh), "--name", "my_hop"], capsys)
+    assert code == 0, err
+    saved = home / "open" / "motions" / "my_hop.npz"
+    assert saved.exists()
+    assert load_motion("my_hop").num_frames > 30
+    # A second import of the same name is refused without --overwrite.
+    code, _, err = run_main(["motion", "import", str(bvh), "--name", "my_hop"], capsys)
+    assert code == 2 and "my_hop" in err
+
+
+@pytest.mark.slow
+def test_wheel_ships_assets_and_demo_runs_from_another_folder(tmp_path):
+    """`pip install .` (not editable) then `simgen demo` elsewhere: the wheel carries body and motions."""
+    import zipfile
+
+    wheel_dir = tmp_path / "wheel"
+    subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "-q", "-w", str(wheel_dir), str(REPO)],
+                   check=True, capture_output=True)
+    wheel = next(wheel_dir.glob("simgen-*.whl"))
+    names = set(zipfile.ZipFile(wheel).namelist())
+    assert "simgen/body/data/open.npz" in names
+    assert "simgen/_assets/motions/library.json" in names
+    assert "simgen/_assets/motions/walk.npz" in names
+
+    # Install the wheel alone into a folder that shadows the checkout, and run from elsewhere.
+    site = tmp_path / "site"
+    subprocess.run([sys.executable, "-m", "pip", "install", "-q", "--no-deps", "--no-index", "--target", str(site),
+                    str(wheel)], check=True, capture_output=True)
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    env = dict(os.environ, PYTHONPATH=str(site), SIMGEN_HOME=str(tmp_path / "home"))
+    located = subprocess.run([sys.executable, "-c", "import simgen; print(simgen.__file__)"], cwd=elsewhere,
+                             env=env, capture_output=True, text=True, check=True).stdout
+    assert located.startswith(str(site))  # the installed copy runs, not the checkout
+    result = subprocess.run([sys.executable, "-m", "simgen.cli", "demo", "--frames", "3", "--no-video"],
+                            cwd=elsewhere, env=env, capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr
+    assert (elsewhere / "simgen-demo" / "jumping_jacks.usdc").exists()
