@@ -1,0 +1,123 @@
+"""Shared pieces of the energy kernels: scalar-generic types, Warp module naming, PSD projection.
+
+Every energy kernel is built by a factory for one scalar type (``wp.float32`` on the device,
+``wp.float64`` for the finite-difference tests), so the very code the solver runs is what the
+float64 tests check. The kernels of one energy file and one scalar type share one Warp module
+(``<file module>.<scalar>``), so Warp's kernel cache works across runs and a float32 run never
+compiles the float64 code.
+"""
+
+import functools
+from types import SimpleNamespace
+
+import warp as wp
+
+__all__ = ["SCALARS", "scalar_types", "module_name", "math_funcs", "check_scalar", "resolve_outputs"]
+
+SCALARS = (wp.float32, wp.float64)
+
+
+def check_scalar(scalar) -> None:
+    """Raise TypeError unless ``scalar`` is wp.float32 or wp.float64."""
+    if scalar not in SCALARS:
+        raise TypeError(f"scalar type must be wp.float32 or wp.float64, got {scalar!r}")
+
+
+@functools.cache
+def scalar_types(scalar) -> SimpleNamespace:
+    """Vector and matrix types over ``scalar`` (Warp's named ones where they exist)."""
+    check_scalar(scalar)
+    f64 = scalar is wp.float64
+    return SimpleNamespace(
+        scalar=scalar,
+        vec2=wp.vec2d if f64 else wp.vec2,
+        vec3=wp.vec3d if f64 else wp.vec3,
+        mat22=wp.mat22d if f64 else wp.mat22,
+        mat33=wp.mat33d if f64 else wp.mat33,
+        mat32=wp.types.matrix((3, 2), scalar),
+        mat66=wp.types.matrix((6, 6), scalar),
+    )
+
+
+def module_name(file_module: str, scalar) -> str:
+    """Warp module holding the kernels of one energy file for one scalar type."""
+    return f"{file_module}.{scalar.__name__}"
+
+
+@functools.cache
+def math_funcs(scalar) -> SimpleNamespace:
+    """Warp functions shared by the energies, for one scalar type.
+
+    project_psd6(A) -> A+: the nearest positive semi-definite matrix of a symmetric 6x6 A
+      (eigenvalues clamped at 0), by cyclic Jacobi sweeps.
+    """
+    t = scalar_types(scalar)
+    mat66 = t.mat66
+    # Jacobi converges quadratically; a 6x6 needs ~5 sweeps to float32 and ~7 to float64 accuracy,
+    # the loop stops as soon as the off-diagonal part is negligible.
+    sweeps = 10 if scalar is wp.float64 else 8
+    rel_tol = scalar(1.0e-15 if scalar is wp.float64 else 1.0e-7)
+
+    @wp.func
+    def project_psd6(a_in: mat66):
+        a = a_in
+        v = wp.identity(n=6, dtype=scalar)
+        norm2 = scalar(0.0)
+        for i in range(6):
+            for j in range(6):
+                norm2 += a[i, j] * a[i, j]
+        tol2 = norm2 * rel_tol * rel_tol
+        for _sweep in range(sweeps):
+            off2 = scalar(0.0)
+            for p in range(5):
+                for q in range(p + 1, 6):
+                    off2 += a[p, q] * a[p, q]
+            if off2 <= tol2:
+                break
+            for p in range(5):
+                for q in range(p + 1, 6):
+                    apq = a[p, q]
+                    if apq * apq > tol2 * scalar(1.0e-4):
+                        # Rotation J in the (p, q) plane that zeroes a[p, q]; a <- J^T a J, v <- v J.
+                        theta = (a[q, q] - a[p, p]) / (scalar(2.0) * apq)
+                        tt = scalar(1.0) / (wp.abs(theta) + wp.sqrt(theta * theta + scalar(1.0)))
+                        if theta < scalar(0.0):
+                            tt = -tt
+                        c = scalar(1.0) / wp.sqrt(tt * tt + scalar(1.0))
+                        s = tt * c
+                        for k in range(6):
+                            akp = a[k, p]
+                            akq = a[k, q]
+                            a[k, p] = c * akp - s * akq
+                            a[k, q] = s * akp + c * akq
+                        for k in range(6):
+                            apk = a[p, k]
+                            aqk = a[q, k]
+                            a[p, k] = c * apk - s * aqk
+                            a[q, k] = s * apk + c * aqk
+                        for k in range(6):
+                            vkp = v[k, p]
+                            vkq = v[k, q]
+                            v[k, p] = c * vkp - s * vkq
+                            v[k, q] = s * vkp + c * vkq
+        out = mat66()
+        for e in range(6):
+            lam = a[e, e]
+            if lam > scalar(0.0):
+                for i in range(6):
+                    for j in range(6):
+                        out[i, j] += lam * v[i, e] * v[j, e]
+        return out
+
+    return SimpleNamespace(project_psd6=project_psd6)
+
+
+def resolve_outputs(energy, gradient, hessian):
+    """Flags and arrays for a kernel launch from the optional outputs of an ``eval_*`` call.
+
+    hessian may be a warp.sparse BsrMatrix (its ``values`` are used) or a values array. Returns
+    (want_energy, want_gradient, want_hessian, energy, gradient, hessian_values); a missing output
+    is passed to the kernel as None (a null array the kernel never touches).
+    """
+    values = getattr(hessian, "values", hessian)
+    return int(energy is not None), int(gradient is not None), int(values is not None), energy, gradient, values

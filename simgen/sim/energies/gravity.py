@@ -1,0 +1,68 @@
+"""Gravity potential (SNUG eq. 5.11): E = -sum_v m_v g . x_v, gradient -m_v g, zero Hessian."""
+
+import functools
+import math
+from dataclasses import dataclass
+from types import SimpleNamespace
+
+import warp as wp
+
+from simgen.errors import InputError
+from simgen.sim.energies._common import module_name, resolve_outputs, scalar_types
+
+__all__ = ["GravityParams", "eval_gravity", "gravity_kernels"]
+
+
+@dataclass(frozen=True)
+class GravityParams:
+    """gravity [m/s^2]: the acceleration vector; DESIGN.md's world is Y-up, (0, -9.81, 0)."""
+
+    gravity: tuple[float, float, float] = (0.0, -9.81, 0.0)
+
+    def __post_init__(self) -> None:
+        g = tuple(float(c) for c in self.gravity)
+        if len(g) != 3 or not all(math.isfinite(c) for c in g):
+            raise InputError(f"gravity must be 3 finite numbers, got {self.gravity!r}")
+        object.__setattr__(self, "gravity", g)
+
+
+@functools.cache
+def gravity_kernels(scalar) -> SimpleNamespace:
+    """The gravity kernel for one scalar type (``.gravity``, one thread per vertex)."""
+    vec3 = scalar_types(scalar).vec3
+
+    @wp.kernel(enable_backward=False, module=module_name(__name__, scalar))
+    def gravity(
+        x: wp.array(dtype=vec3),
+        mass: wp.array(dtype=scalar),
+        vertex_instance: wp.array(dtype=wp.int32),
+        g: vec3,
+        scale: scalar,
+        want_energy: int,
+        want_grad: int,
+        energy: wp.array(dtype=scalar),
+        grad: wp.array(dtype=vec3),
+    ):
+        i = wp.tid()
+        m = mass[i] * scale
+        if want_energy != 0:
+            wp.atomic_add(energy, vertex_instance[i], -m * wp.dot(g, x[i]))
+        if want_grad != 0:
+            wp.atomic_add(grad, i, -m * g)
+
+    return SimpleNamespace(gravity=gravity)
+
+
+def eval_gravity(model, positions, params: GravityParams = GravityParams(), *, energy=None, gradient=None,
+                 hessian=None, scale: float = 1.0) -> None:
+    """Accumulate the gravity potential of every vertex.
+
+    positions [m], (V,) vec3. Outputs (added to, optional): energy [J] per instance; gradient [J/m]
+    (V,) vec3. The Hessian is zero: a hessian argument is accepted and left untouched.
+    """
+    we, wg, _, e, g, _ = resolve_outputs(energy, gradient, hessian)
+    if not (we or wg):
+        return
+    vec3 = scalar_types(model.scalar).vec3
+    wp.launch(gravity_kernels(model.scalar).gravity, dim=model.num_vertices, device=model.device, inputs=[
+        positions, model.vertex_mass, model.vertex_instance, vec3(*params.gravity), scale, we, wg, e, g])
