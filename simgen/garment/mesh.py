@@ -89,11 +89,13 @@ def non_manifold_vertices(faces) -> np.ndarray:
     """Vertices whose triangle fan is not a single disc or half-disc (bow-tie vertices), shape (K,).
 
     A vertex is manifold when the triangles around it form one connected fan through shared edges.
+    Triangles with a repeated corner (degenerate) are ignored here; report them separately.
     """
     import scipy.sparse as sp
     from scipy.sparse.csgraph import connected_components as cc
 
     f = np.asarray(faces, dtype=np.int64)
+    f = f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 2] != f[:, 0])]
     bad = []
     # Build corner list: for each vertex, the triangles incident to it; fans connect through edges.
     corners_v = f.reshape(-1)
