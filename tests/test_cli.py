@@ -175,6 +175,8 @@ def test_wheel_ships_assets_and_demo_runs_from_another_folder(tmp_path):
     assert "simgen/body/data/open.npz" in names
     assert "simgen/_assets/motions/library.json" in names
     assert "simgen/_assets/motions/walk.npz" in names
+    for ext in ("obj", "json", "npz"):
+        assert f"simgen/_assets/garments/tshirt/tshirt.{ext}" in names
 
     # Install the wheel alone into a folder that shadows the checkout, and run from elsewhere.
     site = tmp_path / "site"
@@ -190,6 +192,9 @@ def test_wheel_ships_assets_and_demo_runs_from_another_folder(tmp_path):
                             cwd=elsewhere, env=env, capture_output=True, text=True)
     assert result.returncode == 0, result.stderr
     assert (elsewhere / "simgen-demo" / "jumping_jacks.usdc").exists()
+    listed = subprocess.run([sys.executable, "-m", "simgen.cli", "garment", "list", "--json"], cwd=elsewhere,
+                            env=env, capture_output=True, text=True, check=True).stdout
+    assert '"tshirt_1k"' in listed
 
 
 # ------------------------------------------------------------------------------------ garments
