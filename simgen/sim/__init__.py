@@ -3,13 +3,19 @@
     from simgen.sim import ClothModel, get_material
     model = ClothModel.from_mesh(vertices, faces, "cotton", device="cuda:0")
     state = model.state()
+    solver = ImplicitSolver(model, SolverConfig())
+    solver.step(state, state, body, dt)     # body: a BodyCollider or None
 """
 
 from simgen.sim.materials import MATERIALS, Material, get_material
 from simgen.sim.model import ClothModel, ClothModelBuilder, ClothState
 from simgen.sim.energies import ContactParams, FrictionParams, GravityParams
+from simgen.sim.collider import BodyCollider
+from simgen.sim.linear import BlockJacobiPCG
+from simgen.sim.solver import ImplicitSolver, SolverConfig, SolverDivergedError
 
 __all__ = [
     "Material", "MATERIALS", "get_material", "ClothModel", "ClothModelBuilder", "ClothState",
-    "ContactParams", "FrictionParams", "GravityParams",
+    "ContactParams", "FrictionParams", "GravityParams", "BodyCollider", "BlockJacobiPCG", "ImplicitSolver",
+    "SolverConfig", "SolverDivergedError",
 ]

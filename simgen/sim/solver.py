@@ -1,0 +1,473 @@
+"""Implicit cloth solver: backward Euler as minimisation (SNUG eq. 5.4), Newton + block-Jacobi PCG.
+
+One step of length h from (x_t, v_t) solves
+
+    x_{t+1} = argmin_x  E(x) = 1/(2 h^2) (x - x_hat)^T M (x - x_hat) + Phi(x),   x_hat = x_t + h v_t,
+    v_{t+1} = (x_{t+1} - x_t) / h,
+
+with Phi = StVK membrane + dihedral bending + gravity + body contact penalty + lagged friction +
+damping dissipation (the terms of :mod:`simgen.sim.energies`). Its stationarity condition is
+exactly backward Euler, M (v_{t+1} - v_t) / h = f(x_{t+1}). Each Newton iteration assembles the
+gradient g and the PSD-projected Hessian H (values refilled in place in the model's fixed BSR
+pattern), solves H d = g with :class:`~simgen.sim.linear.BlockJacobiPCG` and sets x <- x - alpha d,
+alpha = 1 or chosen by a backtracking (Armijo) line search on each instance's own E, run for a
+fixed number of trials on the device. The iteration starts from x_t (ARCSim's single linearised
+step when ``newton_iterations`` = 1); pinned vertices are kinematic: they move to x_hat (their
+own velocity) and are removed from the linear system.
+
+Guard: after each step the solver checks (one host read) for non-finite positions, a vertex speed
+above ``max_speed`` or an increase of E beyond ``divergence_ratio`` times the decrease the first
+Newton model predicted (plus a round-off allowance). A failed step is redone as two half steps,
+recursively, up to ``max_retries`` levels; retries are counted in :attr:`ImplicitSolver.stats`.
+
+After each substep, an optional projection (:meth:`BodyCollider.project`) moves any vertex found
+inside its body onto the surface and removes its inward normal velocity, so no output vertex is
+inside. Friction's contact set (normal force, normal, closest body point) is lagged: taken at the
+end of the previous substep (after the projection), where cloth and body are at the same time.
+
+Host synchronisation: the Newton/PCG/line-search sequence itself launches a fixed number of kernels
+and reads nothing back (capturable as a CUDA graph). The guard (one int per substep),
+``newton_tolerance`` > 0 (one float per Newton iteration) and :attr:`ImplicitSolver.stats` read
+from the device; turn the first two off for capture.
+"""
+
+
+import functools
+import math
+from dataclasses import dataclass, field
+from types import SimpleNamespace
+
+import numpy as np
+import warp as wp
+
+from simgen.errors import InputError
+from simgen.sim.collider import BodyCollider
+from simgen.sim.energies import (ContactFrame, ContactParams, FrictionParams, GravityParams, eval_bending,
+                                 eval_contact, eval_damping, eval_friction, eval_gravity, eval_inertia,
+                                 eval_membrane, load_kernels, update_contact_frame)
+from simgen.sim.energies._common import module_name, scalar_types
+from simgen.sim.linear import BlockJacobiPCG
+from simgen.sim.model import ClothModel, ClothState
+
+__all__ = ["SolverConfig", "ImplicitSolver", "SolverDivergedError", "solver_kernels"]
+
+
+class SolverDivergedError(RuntimeError):
+    """A step still produced non-finite positions after every allowed retry."""
+
+
+@dataclass(frozen=True)
+class SolverConfig:
+    """Options of :class:`ImplicitSolver` (SI units).
+
+    newton_iterations: Newton iterations per (sub)step (ARCSim: 1).
+    newton_tolerance [m]: if > 0, stop iterating once the largest vertex update is below it (costs a
+      host read per iteration, so it is off by default and for graph capture).
+    cg_iterations: PCG iterations launched per Newton iteration (work stops once converged).
+    cg_tolerance: relative PCG tolerance on the preconditioned residual.
+    line_search: backtrack alpha = 1, 1/2, ... (``line_search_steps`` trials, Armijo constant
+      ``armijo``) on each instance's incremental potential.
+    substeps: equal substeps per :meth:`ImplicitSolver.step` (the body moves linearly across them).
+    gravity, contact, friction: the energy parameters; friction=None switches friction off.
+    damping: include the material damping potential (only matters if the material has damping).
+    project: after each step push vertices found inside the body onto it (offset
+      ``projection_offset`` [m] outside) and remove their inward normal velocity.
+    guard: check each step for divergence and retry it as two half steps, up to ``max_retries``
+      levels. max_speed [m/s]: a vertex faster than this marks divergence. divergence_ratio: E may
+      rise at most this many times the first Newton model's predicted decrease.
+    """
+
+    newton_iterations: int = 1
+    newton_tolerance: float = 0.0
+    cg_iterations: int = 50
+    cg_tolerance: float = 1.0e-3
+    line_search: bool = False
+    line_search_steps: int = 8
+    armijo: float = 1.0e-4
+    substeps: int = 1
+    gravity: GravityParams = field(default_factory=GravityParams)
+    contact: ContactParams = field(default_factory=ContactParams)
+    friction: FrictionParams | None = field(default_factory=FrictionParams)
+    damping: bool = True
+    project: bool = True
+    projection_offset: float = 0.0
+    guard: bool = True
+    max_retries: int = 4
+    max_speed: float = 50.0
+    divergence_ratio: float = 10.0
+
+    def __post_init__(self) -> None:
+        for name in ("newton_iterations", "cg_iterations", "line_search_steps", "substeps"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                raise InputError(f"solver {name} must be an integer >= 1, got {v!r}")
+        if isinstance(self.max_retries, bool) or not isinstance(self.max_retries, int) or self.max_retries < 0:
+            raise InputError(f"solver max_retries must be an integer >= 0, got {self.max_retries!r}")
+        for name in ("newton_tolerance", "cg_tolerance", "projection_offset"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
+                raise InputError(f"solver {name} must be a finite number >= 0, got {v!r}")
+        for name in ("armijo", "max_speed", "divergence_ratio"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise InputError(f"solver {name} must be a finite number > 0, got {v!r}")
+
+
+@functools.cache
+def solver_kernels(scalar) -> SimpleNamespace:
+    """Per-vertex and per-instance kernels of the integrator for one scalar type."""
+    T = scalar_types(scalar)
+    vec3 = T.vec3
+    mod = module_name(__name__, scalar)
+    zero = scalar(0.0)
+
+    @wp.kernel(enable_backward=False, module=mod)
+    def predict(x: wp.array(dtype=vec3), v: wp.array(dtype=vec3), pinned: wp.array(dtype=wp.int32), h: scalar,
+                x_start: wp.array(dtype=vec3), x_hat: wp.array(dtype=vec3)):
+        # Newton starts at x_t; pinned vertices follow their own velocity (kinematic) at once.
+        i = wp.tid()
+        xs = x[i]
+        x_start[i] = xs
+        xh = xs + h * v[i]
+        x_hat[i] = xh
+        if pinned[i] != 0:
+            x[i] = xh
+
+    @wp.kernel(enable_backward=False, module=mod)
+    def instance_dot(a: wp.array(dtype=vec3), b: wp.array(dtype=vec3), vertex_instance: wp.array(dtype=wp.int32),
+                     out: wp.array(dtype=scalar)):
+        i = wp.tid()
+        wp.atomic_add(out, vertex_instance[i], wp.dot(a[i], b[i]))
+
+    @wp.kernel(enable_backward=False, module=mod)
+    def ls_init(alpha: wp.array(dtype=scalar), accepted: wp.array(dtype=wp.int32)):
+        k = wp.tid()
+        alpha[k] = scalar(1.0)
+        accepted[k] = 0
+
+    @wp.kernel(enable_backward=False, module=mod)
+    def ls_trial(x: wp.array(dtype=vec3), d: wp.array(dtype=vec3), vertex_instance: wp.array(dtype=wp.int32),
+                 alpha: wp.array(dtype=scalar), x_trial: wp.array(dtype=vec3)):
+        i = wp.tid()
+        x_trial[i] = x[i] - alpha[vertex_instance[i]] * d[i]
+
+    @wp.kernel(enable_backward=False, module=mod)
+    def ls_check(e0: wp.array(dtype=scalar), e_trial: wp.array(dtype=scalar), gd: wp.array(dtype=scalar),
+                 armijo: scalar, rel_tol: scalar, alpha: wp.array(dtype=scalar), accepted: wp.array(dtype=wp.int32)):
+        # Armijo on E(x - alpha d) with slope -g.d; rel_tol |E0| absorbs the round-off of E itself.
+        k = wp.tid()
+        if accepted[k] != 0:
+            return
+        a = alpha[k]
+        if e_trial[k] <= e0[k] - armijo * a * gd[k] + rel_tol * wp.abs(e0[k]):
+            accepted[k] = 1
+        else:
+            alpha[k] = a * scalar(0.5)
+
+    @wp.kernel(enable_backward=False, module=mod)
+    def ls_finalize(alpha: wp.array(dtype=scalar), accepted: wp.array(dtype=wp.int32), bad: wp.array(dtype=wp.int32)):
+        # No trial passed: take no step rather than an unverified one, and flag it (bit 8) so the
+        # guard retries the step at half dt.
+        k = wp.tid()
+        if accepted[k] == 0:
+            alpha[k] = zero
+            wp.atomic_or(bad, k, 8)
+
+    @wp.kernel(enable_backward=False, module=mod)
+    def apply_step(x: wp.array(dtype=vec3), d: wp.array(dtype=vec3), vertex_instance: wp.array(dtype=wp.int32),
+                   alpha: wp.array(dtype=scalar)):
+        i = wp.tid()
+        x[i] = x[i] - alpha[vertex_instance[i]] * d[i]
+
+    @wp.kernel(enable_backward=False, module=mod)
+    def velocity(x: wp.array(dtype=vec3), x_start: wp.array(dtype=vec3), inv_h: scalar, v: wp.array(dtype=vec3)):
+        i = wp.tid()
+        v[i] = (x[i] - x_start[i]) * inv_h
+
+    @wp.kernel(enable_backward=False, module=mod)
+    def max_abs(d: wp.array(dtype=vec3), out: wp.array(dtype=scalar)):
+        i = wp.tid()
+        di = d[i]
+        wp.atomic_max(out, 0, wp.max(wp.abs(di[0]), wp.max(wp.abs(di[1]), wp.abs(di[2]))))
+
+    @wp.kernel(enable_backward=False, module=mod)
+    def check_vertices(x: wp.array(dtype=vec3), v: wp.array(dtype=vec3), vertex_instance: wp.array(dtype=wp.int32),
+                       max_speed2: scalar, bad: wp.array(dtype=wp.int32)):
+        # bad bit 1: non-finite position or velocity; bit 2: a vertex faster than max_speed.
+        i = wp.tid()
+        xi = x[i]
+        vi = v[i]
+        s = xi[0] + xi[1] + xi[2] + vi[0] + vi[1] + vi[2]
+        if not wp.isfinite(s):
+            wp.atomic_or(bad, vertex_instance[i], 1)
+        elif wp.dot(vi, vi) > max_speed2:
+            wp.atomic_or(bad, vertex_instance[i], 2)
+
+    @wp.kernel(enable_backward=False, module=mod)
+    def check_energy(e_start: wp.array(dtype=scalar), e_end: wp.array(dtype=scalar),
+                     predicted: wp.array(dtype=scalar), ratio: scalar, rel_tol: scalar,
+                     bad: wp.array(dtype=wp.int32)):
+        # bad bit 4: E rose by more than ratio x the first Newton model's predicted decrease.
+        k = wp.tid()
+        allowed = ratio * wp.abs(predicted[k]) + rel_tol * wp.abs(e_start[k])
+        if not (e_end[k] - e_start[k] <= allowed):
+            wp.atomic_or(bad, k, 4)
+
+    @wp.kernel(enable_backward=False, module=mod)
+    def accumulate(counter: wp.array(dtype=wp.int32), total: wp.array(dtype=wp.int64)):
+        total[0] = total[0] + wp.int64(counter[0])
+
+    @wp.kernel(enable_backward=False, module=mod)
+    def keep_max(value: wp.array(dtype=scalar), running: wp.array(dtype=scalar)):
+        k = wp.tid()
+        running[k] = wp.max(running[k], value[k])
+
+    return SimpleNamespace(predict=predict, instance_dot=instance_dot, ls_init=ls_init, ls_trial=ls_trial,
+                           ls_check=ls_check, ls_finalize=ls_finalize, apply_step=apply_step, velocity=velocity,
+                           max_abs=max_abs, check_vertices=check_vertices, check_energy=check_energy, accumulate=accumulate,
+                           keep_max=keep_max)
+
+
+class ImplicitSolver:
+    """Backward-Euler Newton/PCG cloth solver for one :class:`ClothModel` (see the module doc).
+
+    >>> solver = ImplicitSolver(model, SolverConfig(newton_iterations=1))
+    >>> s0, s1 = model.state(), model.state()
+    >>> solver.step(s0, s1, body, dt=1 / 300); s0, s1 = s1, s0
+
+    Every buffer is allocated here. ``stats`` (a dict, read with a host sync) counts steps,
+    Newton and CG iterations, retries, unresolved (guard still failing after max_retries, but
+    finite) and the maximum body penetration [m] seen before projection.
+    """
+
+    def __init__(self, model: ClothModel, config: SolverConfig | None = None) -> None:
+        self.model = model
+        self.config = config if config is not None else SolverConfig()
+        cfg = self.config
+        m = model
+        T = scalar_types(m.scalar)
+        dev, ni = m.device, m.num_instances
+        self.kernels = solver_kernels(m.scalar)
+        self.pcg = BlockJacobiPCG(m, max_iterations=cfg.cg_iterations, tolerance=cfg.cg_tolerance)
+        self.hessian = m.new_hessian()
+        self.gradient = m.new_gradient()
+        self.step_dir = m.new_gradient()
+        self.x_start = m.new_gradient()
+        self.x_hat = m.new_gradient()
+        self.x_trial = m.new_gradient()
+        self.energy = m.new_energy()
+        self.energy_start = m.new_energy()
+        self.energy_trial = m.new_energy()
+        self.grad_dot_step = m.new_energy()
+        self.predicted = m.new_energy()
+        self.alpha = wp.ones(ni, dtype=T.scalar, device=dev)
+        self.accepted = wp.zeros(ni, dtype=wp.int32, device=dev)
+        self.bad = wp.zeros(ni, dtype=wp.int32, device=dev)
+        self.update_norm = wp.zeros(1, dtype=T.scalar, device=dev)
+        self.contact_frame = ContactFrame(m)
+        self._frame_valid = False
+        self.no_body = wp.zeros(ni, dtype=wp.uint64, device=dev)
+        # Round-off allowance on energies that include the arbitrary offset of the gravity potential.
+        self.energy_rel_tol = 1.0e-5 if m.scalar is wp.float32 else 1.0e-10
+        self.has_damping = bool(np.any(m.host.tri_damping) or np.any(m.host.hinge_damping)
+                                or np.any(m.host.vertex_damping_mass))
+        self._backups = [m.state() for _ in range(cfg.max_retries + 1)] if cfg.guard else []
+        self._work = m.state()
+        self._cg_total = wp.zeros(1, dtype=wp.int64, device=dev)
+        self._depth = wp.zeros(ni, dtype=T.scalar, device=dev)
+        self._depth_max = wp.zeros(ni, dtype=T.scalar, device=dev)
+        self._inside = wp.zeros(ni, dtype=wp.int32, device=dev)
+        self._counts = dict(steps=0, substeps=0, newton_iterations=0, retries=0, unresolved=0)
+
+    # -- public -------------------------------------------------------------------------------
+
+    def load(self) -> None:
+        """Compile every kernel the solver launches (before capturing a CUDA graph)."""
+        dev = self.model.device
+        load_kernels(self.model.scalar, device=dev)
+        self.pcg.load()
+        wp.load_module(module_name(__name__, self.model.scalar), device=dev)
+
+    @property
+    def stats(self) -> dict:
+        """Counters since construction or :meth:`reset_stats` (host sync):
+
+        steps, substeps (attempted, retries included), newton_iterations, cg_iterations (total),
+        cg_per_newton (mean), retries (half-step splits), unresolved, max_penetration [m]
+        (deepest vertex inside its body before projection, over all steps and instances),
+        last_inside (vertices found inside before the last projection, all instances).
+        """
+        s = dict(self._counts)
+        s["cg_iterations"] = int(self._cg_total.numpy()[0])
+        s["cg_per_newton"] = s["cg_iterations"] / max(s["newton_iterations"], 1)
+        s["max_penetration"] = float(self._depth_max.numpy().max())
+        s["last_inside"] = int(self._inside.numpy().sum())
+        return s
+
+    def reset_stats(self) -> None:
+        """Zero every counter of :attr:`stats`."""
+        for k in self._counts:
+            self._counts[k] = 0
+        self._cg_total.zero_()
+        self._depth_max.zero_()
+        self._inside.zero_()
+
+    def step(self, state_in: ClothState, state_out: ClothState, body: BodyCollider | None, dt: float) -> None:
+        """Advance ``state_in`` by dt [s] into ``state_out`` (they may be the same object).
+
+        body: the :class:`BodyCollider` (one body per instance, already :meth:`~BodyCollider.update`d
+        to the end of this step; with substeps it is interpolated from its previous position), or
+        None for no body. Raises SolverDivergedError if a step stays non-finite after every retry.
+        """
+        try:
+            dt = float(dt)
+        except (TypeError, ValueError):
+            raise InputError(f"time step must be a number, got {dt!r}") from None
+        if not (math.isfinite(dt) and dt > 0):
+            raise InputError(f"time step must be a finite number > 0, got {dt!r}")
+        if body is not None:
+            body.check_model(self.model)
+        cfg = self.config
+        work = self._work
+        work.assign(state_in)
+        n = cfg.substeps
+        for s in range(n):
+            self._guarded_step(work, body, dt / n, s / n, (s + 1) / n, 0)
+            if body is not None and cfg.project:
+                self._inside.zero_()
+                self._depth.zero_()
+                body.project(self.model, work, offset=cfg.projection_offset,
+                             query_distance=cfg.contact.query_distance, depth=self._depth, count=self._inside)
+                wp.launch(self.kernels.keep_max, dim=self.model.num_instances, device=self.model.device,
+                          inputs=[self._depth, self._depth_max])
+                self._lag_contacts(work, body)
+        state_out.assign(work)
+        self._counts["steps"] += 1
+
+    # -- internals ----------------------------------------------------------------------------
+
+    def _guarded_step(self, state: ClothState, body, h: float, t0: float, t1: float, level: int) -> None:
+        cfg = self.config
+        if body is not None and cfg.friction is not None and not self._frame_valid:
+            # No lagged contacts yet: take them at this step's start, cloth and body both at t0.
+            body.set_time(t0)
+            update_contact_frame(self.model, state.positions, body.mesh_ids, cfg.contact, self.contact_frame)
+            self._frame_valid = True
+            body.set_time(t1)
+        elif body is not None and not (t0 == 0.0 and t1 == 1.0):
+            body.set_time(t1)
+        if not cfg.guard:
+            self._advance(state, body, h)
+            return
+        backup = self._backups[level]
+        backup.assign(state)
+        bad = self._advance(state, body, h)
+        if bad == 0:
+            return
+        if level >= cfg.max_retries:
+            if bad & 1:
+                raise SolverDivergedError(
+                    f"the cloth step still produced non-finite positions at dt = {h:.3g} s after "
+                    f"{cfg.max_retries} half-step retries")
+            self._counts["unresolved"] += 1
+            return
+        state.assign(backup)
+        self._counts["retries"] += 1
+        tm = 0.5 * (t0 + t1)
+        self._guarded_step(state, body, 0.5 * h, t0, tm, level + 1)
+        self._guarded_step(state, body, 0.5 * h, tm, t1, level + 1)
+
+    def _eval(self, x, h: float, mesh_ids, body, *, energy=None, gradient=None, hessian=None) -> None:
+        m, cfg = self.model, self.config
+        eval_inertia(m, x, self.x_hat, h, energy=energy, gradient=gradient, hessian=hessian)
+        eval_membrane(m, x, energy=energy, gradient=gradient, hessian=hessian)
+        eval_bending(m, x, energy=energy, gradient=gradient, hessian=hessian)
+        eval_gravity(m, x, cfg.gravity, energy=energy, gradient=gradient)
+        if body is not None:
+            eval_contact(m, x, mesh_ids, cfg.contact, energy=energy, gradient=gradient, hessian=hessian)
+            if cfg.friction is not None:
+                eval_friction(m, x, self.x_start, mesh_ids, self.contact_frame, h, cfg.friction,
+                              energy=energy, gradient=gradient, hessian=hessian)
+        if cfg.damping and self.has_damping:
+            eval_damping(m, x, self.x_start, h, energy=energy, gradient=gradient, hessian=hessian)
+
+    def _advance(self, state: ClothState, body, h: float) -> int:
+        """One backward-Euler step of length h in place; returns the guard's bad bits (0 = fine)."""
+        m, cfg, k = self.model, self.config, self.kernels
+        dev, n, ni = m.device, m.num_vertices, m.num_instances
+        x, v = state.positions, state.velocities
+        mesh_ids = body.mesh_ids if body is not None else self.no_body
+        self._counts["substeps"] += 1
+        self.bad.zero_()
+        wp.launch(k.predict, dim=n, device=dev, inputs=[x, v, m.vertex_pinned, h, self.x_start, self.x_hat])
+        if cfg.guard:
+            self.energy_start.zero_()
+            self._eval(x, h, mesh_ids, body, energy=self.energy_start)
+        want_energy = cfg.line_search
+        for it in range(cfg.newton_iterations):
+            self.gradient.zero_()
+            self.hessian.values.zero_()
+            if want_energy:
+                self.energy.zero_()
+            self._eval(x, h, mesh_ids, body, energy=self.energy if want_energy else None,
+                       gradient=self.gradient, hessian=self.hessian)
+            self.pcg.apply_constraints(self.hessian)
+            # H d = g; the Newton update is x - d (pinned entries of d are exactly 0).
+            self.pcg.solve(self.hessian, self.gradient, self.step_dir)
+            wp.launch(k.accumulate, dim=1, device=dev, inputs=[self.pcg.iteration_counter, self._cg_total])
+            self._counts["newton_iterations"] += 1
+            if cfg.line_search or (cfg.guard and it == 0):
+                self.grad_dot_step.zero_()
+                wp.launch(k.instance_dot, dim=n, device=dev,
+                          inputs=[self.gradient, self.step_dir, m.vertex_instance, self.grad_dot_step])
+            if cfg.guard and it == 0:
+                # The quadratic model predicts a decrease of g.d / 2 for the full step.
+                wp.copy(self.predicted, self.grad_dot_step)
+            wp.launch(k.ls_init, dim=ni, device=dev, inputs=[self.alpha, self.accepted])
+            if cfg.line_search:
+                for _ in range(cfg.line_search_steps):
+                    wp.launch(k.ls_trial, dim=n, device=dev,
+                              inputs=[x, self.step_dir, m.vertex_instance, self.alpha, self.x_trial])
+                    self.energy_trial.zero_()
+                    self._eval(self.x_trial, h, mesh_ids, body, energy=self.energy_trial)
+                    wp.launch(k.ls_check, dim=ni, device=dev, inputs=[
+                        self.energy, self.energy_trial, self.grad_dot_step, cfg.armijo, self.energy_rel_tol,
+                        self.alpha, self.accepted])
+                wp.launch(k.ls_finalize, dim=ni, device=dev, inputs=[self.alpha, self.accepted, self.bad])
+            wp.launch(k.apply_step, dim=n, device=dev, inputs=[x, self.step_dir, m.vertex_instance, self.alpha])
+            if cfg.newton_tolerance > 0:
+                self.update_norm.zero_()
+                wp.launch(k.max_abs, dim=n, device=dev, inputs=[self.step_dir, self.update_norm])
+                if float(self.update_norm.numpy()[0]) < cfg.newton_tolerance:
+                    break
+        wp.launch(k.velocity, dim=n, device=dev, inputs=[x, self.x_start, 1.0 / h, v])
+        if not cfg.guard:
+            self._lag_contacts(state, body)
+            return 0
+        # bad: 1 non-finite, 2 too fast, 4 energy rose, 8 line search found no decrease.
+        wp.launch(k.check_vertices, dim=n, device=dev,
+                  inputs=[x, v, m.vertex_instance, cfg.max_speed * cfg.max_speed, self.bad])
+        self.energy.zero_()
+        self._eval(x, h, mesh_ids, body, energy=self.energy)
+        wp.launch(k.check_energy, dim=ni, device=dev, inputs=[
+            self.energy_start, self.energy, self.predicted, cfg.divergence_ratio * 0.5, self.energy_rel_tol,
+            self.bad])
+        bad = int(np.bitwise_or.reduce(self.bad.numpy()))
+        if bad == 0:
+            self._lag_contacts(state, body)
+        return bad
+
+    def _lag_contacts(self, state: ClothState, body) -> None:
+        # Friction's normal forces and contact points for the next step come from the end of this
+        # one (cloth and body both at t + h), where the penalty balances the actual contact load.
+        # Taking them at the next step's start against the already moved body would see x_t inside
+        # it and overestimate the normal force by orders of magnitude.
+        if body is None or self.config.friction is None:
+            return
+        update_contact_frame(self.model, state.positions, body.mesh_ids, self.config.contact, self.contact_frame)
+        self._frame_valid = True
+
+    def reset_contacts(self) -> None:
+        """Forget the lagged friction contacts, e.g. before stepping a state that is not the output
+        of this solver's previous step (the next step then takes them at its own start)."""
+        self._frame_valid = False
