@@ -6,7 +6,7 @@ height, volume and mass, waist circumference. Writes the PNG and a JSON of the m
 prints a table.
 
     python scripts/render_body_shapes.py                      # docs/img/body_betas.png, docs/body_betas.json
-    python scripts/render_body_shapes.py --model my_smpl.npz --out /tmp/b.png --json /tmp/b.json
+    python scripts/render_body_shapes.py --model my_smpl.npz --out my_smpl_betas.png --json my_smpl_betas.json
 
 Measurements, on the rest (T-pose) body:
 - height [m]: max y - min y.
