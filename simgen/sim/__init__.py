@@ -5,6 +5,7 @@
     state = model.state()
     solver = ImplicitSolver(model, SolverConfig())
     solver.step(state, state, body, dt)     # body: a BodyCollider or None
+    result = simulate("tshirt", body_model, "walk", betas, SimulationConfig())  # garment on a moving body
 """
 
 from simgen.sim.materials import MATERIALS, Material, get_material
@@ -13,9 +14,10 @@ from simgen.sim.energies import ContactParams, FrictionParams, GravityParams
 from simgen.sim.collider import BodyCollider
 from simgen.sim.linear import BlockJacobiPCG
 from simgen.sim.solver import ImplicitSolver, SolverConfig, SolverDivergedError
+from simgen.sim.driver import FRAME_STAT_KEYS, SimulationConfig, SimulationResult, simulate
 
 __all__ = [
     "Material", "MATERIALS", "get_material", "ClothModel", "ClothModelBuilder", "ClothState",
     "ContactParams", "FrictionParams", "GravityParams", "BodyCollider", "BlockJacobiPCG", "ImplicitSolver",
-    "SolverConfig", "SolverDivergedError",
+    "SolverConfig", "SolverDivergedError", "SimulationConfig", "SimulationResult", "simulate", "FRAME_STAT_KEYS",
 ]
