@@ -15,10 +15,15 @@ once after that. The sequence is therefore capturable in a CUDA graph; the itera
 final residual stay on the device until :meth:`BlockJacobiPCG.iterations` /
 :meth:`BlockJacobiPCG.residual_ratio` read them.
 
-Per iteration: (1) q = H p fused with the reduction p.q, (2) x += alpha p, r -= alpha q,
-z = M^-1 r fused with r.z, (3) one thread: beta, convergence test, counters, (4) p = z + beta p.
-Reductions are atomic adds into one scalar; on a GPU with large systems a tiled reduction would
-cut the contention (to be measured).
+Batched models: the Hessian is block diagonal over instances, so every instance runs its own CG
+(its own alpha, beta, residual and stopping test) inside the same launches; an instance that has
+converged, or whose right-hand side is not finite, stops without holding up or poisoning the
+others, and every launch returns at once when all instances are done.
+
+Per iteration: (1) q = H p fused with the per-instance reduction p.q, (2) x += alpha p,
+r -= alpha q, z = M^-1 r fused with r.z, (3) one thread per instance: beta, convergence test,
+(4) one thread: iteration count and the all-done flag, (5) p = z + beta p. Reductions are atomic
+adds into one scalar per instance.
 """
 
 
@@ -62,6 +67,7 @@ def pcg_kernels(scalar) -> SimpleNamespace:
         values: wp.array(dtype=mat33),
         diag_slots: wp.array(dtype=wp.int32),
         pinned: wp.array(dtype=wp.int32),
+        vertex_instance: wp.array(dtype=wp.int32),
         rhs: wp.array(dtype=vec3),
         x: wp.array(dtype=vec3),
         inv_diag: wp.array(dtype=mat33),
@@ -70,7 +76,7 @@ def pcg_kernels(scalar) -> SimpleNamespace:
         p: wp.array(dtype=vec3),
         rz: wp.array(dtype=scalar),
     ):
-        # Start from x = 0: r = b (zero at pinned vertices), z = D^-1 r, p = z, rz = r.z.
+        # Start from x = 0: r = b (zero at pinned vertices), z = D^-1 r, p = z, rz = r.z per instance.
         i = wp.tid()
         d = values[diag_slots[i]]
         dinv = wp.identity(n=3, dtype=scalar)
@@ -90,46 +96,61 @@ def pcg_kernels(scalar) -> SimpleNamespace:
         zi = dinv * b
         z[i] = zi
         p[i] = zi
-        wp.atomic_add(rz, 0, wp.dot(b, zi))
+        wp.atomic_add(rz, vertex_instance[i], wp.dot(b, zi))
 
     @wp.kernel(enable_backward=False, module=mod)
     def start(
         rz: wp.array(dtype=scalar),
         rz0: wp.array(dtype=scalar),
         done: wp.array(dtype=wp.int32),
-        iterations: wp.array(dtype=wp.int32),
         pq: wp.array(dtype=scalar),
         rz_new: wp.array(dtype=scalar),
     ):
-        rz0[0] = rz[0]
+        k = wp.tid()
+        rz0[k] = rz[k]
+        pq[k] = zero
+        rz_new[k] = zero
+        done[k] = 0
+        if not (rz[k] > zero):
+            done[k] = 1  # zero right-hand side (or a non-finite one): x = 0 is the answer
+
+    @wp.kernel(enable_backward=False, module=mod)
+    def start_all(done: wp.array(dtype=wp.int32), num_instances: int, iterations: wp.array(dtype=wp.int32),
+                  all_done: wp.array(dtype=wp.int32)):
         iterations[0] = 0
-        pq[0] = zero
-        rz_new[0] = zero
-        done[0] = 0
-        if not (rz[0] > zero):
-            done[0] = 1  # zero right-hand side: x = 0 is exact
+        flag = int(1)
+        for k in range(num_instances):
+            if done[k] == 0:
+                flag = 0
+        all_done[0] = flag
 
     @wp.kernel(enable_backward=False, module=mod)
     def spmv_dot(
         offsets: wp.array(dtype=wp.int32),
         columns: wp.array(dtype=wp.int32),
         values: wp.array(dtype=mat33),
+        vertex_instance: wp.array(dtype=wp.int32),
         p: wp.array(dtype=vec3),
         q: wp.array(dtype=vec3),
         pq: wp.array(dtype=scalar),
         done: wp.array(dtype=wp.int32),
+        all_done: wp.array(dtype=wp.int32),
     ):
         i = wp.tid()
-        if done[0] != 0:
+        if all_done[0] != 0:
+            return
+        inst = vertex_instance[i]
+        if done[inst] != 0:
             return
         acc = vec3()
         for k in range(offsets[i], offsets[i + 1]):
             acc += values[k] * p[columns[k]]
         q[i] = acc
-        wp.atomic_add(pq, 0, wp.dot(p[i], acc))
+        wp.atomic_add(pq, inst, wp.dot(p[i], acc))
 
     @wp.kernel(enable_backward=False, module=mod)
     def update_xr(
+        vertex_instance: wp.array(dtype=wp.int32),
         p: wp.array(dtype=vec3),
         q: wp.array(dtype=vec3),
         inv_diag: wp.array(dtype=mat33),
@@ -140,19 +161,23 @@ def pcg_kernels(scalar) -> SimpleNamespace:
         z: wp.array(dtype=vec3),
         rz_new: wp.array(dtype=scalar),
         done: wp.array(dtype=wp.int32),
+        all_done: wp.array(dtype=wp.int32),
     ):
         i = wp.tid()
-        if done[0] != 0:
+        if all_done[0] != 0:
+            return
+        inst = vertex_instance[i]
+        if done[inst] != 0:
             return
         alpha = zero
-        if pq[0] > zero:
-            alpha = rz[0] / pq[0]
+        if pq[inst] > zero:
+            alpha = rz[inst] / pq[inst]
         x[i] = x[i] + alpha * p[i]
         ri = r[i] - alpha * q[i]
         r[i] = ri
         zi = inv_diag[i] * ri
         z[i] = zi
-        wp.atomic_add(rz_new, 0, wp.dot(ri, zi))
+        wp.atomic_add(rz_new, inst, wp.dot(ri, zi))
 
     @wp.kernel(enable_backward=False, module=mod)
     def control(
@@ -163,37 +188,55 @@ def pcg_kernels(scalar) -> SimpleNamespace:
         beta: wp.array(dtype=scalar),
         tol2: scalar,
         done: wp.array(dtype=wp.int32),
-        iterations: wp.array(dtype=wp.int32),
     ):
-        if done[0] != 0:
+        # One thread per instance: each instance's CG runs and stops on its own residual.
+        k = wp.tid()
+        if done[k] != 0:
+            return
+        # A non-positive (or non-finite) curvature p.Hp means H is not SPD along p (should not
+        # happen with PSD-projected terms plus the mass); stop rather than divide by it.
+        if not (pq[k] > zero) or rz_new[k] <= tol2 * rz0[k]:
+            done[k] = 1
+        b = zero
+        if rz[k] > zero:
+            b = rz_new[k] / rz[k]
+        beta[k] = b
+        rz[k] = rz_new[k]
+        pq[k] = zero
+        rz_new[k] = zero
+
+    @wp.kernel(enable_backward=False, module=mod)
+    def count(done: wp.array(dtype=wp.int32), num_instances: int, iterations: wp.array(dtype=wp.int32),
+              all_done: wp.array(dtype=wp.int32)):
+        # iterations = the most any instance ran; all_done lets every later launch return at once.
+        if all_done[0] != 0:
             return
         iterations[0] = iterations[0] + 1
-        # A non-positive curvature p.Hp means H is not SPD along p (should not happen with
-        # PSD-projected terms plus the mass); stop rather than divide by it.
-        if not (pq[0] > zero) or rz_new[0] <= tol2 * rz0[0]:
-            done[0] = 1
-        b = zero
-        if rz[0] > zero:
-            b = rz_new[0] / rz[0]
-        beta[0] = b
-        rz[0] = rz_new[0]
-        pq[0] = zero
-        rz_new[0] = zero
+        flag = int(1)
+        for k in range(num_instances):
+            if done[k] == 0:
+                flag = 0
+        all_done[0] = flag
 
     @wp.kernel(enable_backward=False, module=mod)
     def update_p(
+        vertex_instance: wp.array(dtype=wp.int32),
         z: wp.array(dtype=vec3),
         beta: wp.array(dtype=scalar),
         p: wp.array(dtype=vec3),
         done: wp.array(dtype=wp.int32),
+        all_done: wp.array(dtype=wp.int32),
     ):
         i = wp.tid()
-        if done[0] != 0:
+        if all_done[0] != 0:
             return
-        p[i] = z[i] + beta[0] * p[i]
+        inst = vertex_instance[i]
+        if done[inst] != 0:
+            return
+        p[i] = z[i] + beta[inst] * p[i]
 
-    return SimpleNamespace(constrain=constrain, setup=setup, start=start, spmv_dot=spmv_dot, update_xr=update_xr,
-                           control=control, update_p=update_p)
+    return SimpleNamespace(constrain=constrain, setup=setup, start=start, start_all=start_all, spmv_dot=spmv_dot,
+                           update_xr=update_xr, control=control, count=count, update_p=update_p)
 
 
 class BlockJacobiPCG:
@@ -223,13 +266,16 @@ class BlockJacobiPCG:
         self.z = wp.zeros(n, dtype=T.vec3, device=dev)
         self.p = wp.zeros(n, dtype=T.vec3, device=dev)
         self.q = wp.zeros(n, dtype=T.vec3, device=dev)
-        # Device scalars: r.z, initial r.z, p.Hp, new r.z, beta; done flag and iteration count.
-        self._rz = wp.zeros(1, dtype=T.scalar, device=dev)
-        self._rz0 = wp.zeros(1, dtype=T.scalar, device=dev)
-        self._pq = wp.zeros(1, dtype=T.scalar, device=dev)
-        self._rz_new = wp.zeros(1, dtype=T.scalar, device=dev)
-        self._beta = wp.zeros(1, dtype=T.scalar, device=dev)
-        self._done = wp.zeros(1, dtype=wp.int32, device=dev)
+        # Per instance on the device: r.z, initial r.z, p.Hp, new r.z, beta, done flag; plus the
+        # iteration count (the most any instance ran) and an all-done flag.
+        ni = model.num_instances
+        self._rz = wp.zeros(ni, dtype=T.scalar, device=dev)
+        self._rz0 = wp.zeros(ni, dtype=T.scalar, device=dev)
+        self._pq = wp.zeros(ni, dtype=T.scalar, device=dev)
+        self._rz_new = wp.zeros(ni, dtype=T.scalar, device=dev)
+        self._beta = wp.zeros(ni, dtype=T.scalar, device=dev)
+        self._done = wp.zeros(ni, dtype=wp.int32, device=dev)
+        self._all_done = wp.zeros(1, dtype=wp.int32, device=dev)
         self._iterations = wp.zeros(1, dtype=wp.int32, device=dev)
 
     def load(self) -> None:
@@ -255,20 +301,24 @@ class BlockJacobiPCG:
         m, k = self.model, self.kernels
         n, dev = m.num_vertices, m.device
         values = getattr(hessian, "values", hessian)
+        ni, vi = m.num_instances, m.vertex_instance
         self._rz.zero_()
         wp.launch(k.setup, dim=n, device=dev, inputs=[
-            values, m.diag_slots, m.vertex_pinned, rhs, x, self.inv_diag, self.r, self.z, self.p, self._rz])
-        wp.launch(k.start, dim=1, device=dev, inputs=[
-            self._rz, self._rz0, self._done, self._iterations, self._pq, self._rz_new])
+            values, m.diag_slots, m.vertex_pinned, vi, rhs, x, self.inv_diag, self.r, self.z, self.p, self._rz])
+        wp.launch(k.start, dim=ni, device=dev, inputs=[self._rz, self._rz0, self._done, self._pq, self._rz_new])
+        wp.launch(k.start_all, dim=1, device=dev, inputs=[self._done, ni, self._iterations, self._all_done])
         tol2 = self.tolerance * self.tolerance
         for _ in range(self.max_iterations):
             wp.launch(k.spmv_dot, dim=n, device=dev, inputs=[
-                m.bsr_offsets, m.bsr_columns, values, self.p, self.q, self._pq, self._done])
+                m.bsr_offsets, m.bsr_columns, values, vi, self.p, self.q, self._pq, self._done, self._all_done])
             wp.launch(k.update_xr, dim=n, device=dev, inputs=[
-                self.p, self.q, self.inv_diag, self._rz, self._pq, x, self.r, self.z, self._rz_new, self._done])
-            wp.launch(k.control, dim=1, device=dev, inputs=[
-                self._rz, self._rz0, self._pq, self._rz_new, self._beta, tol2, self._done, self._iterations])
-            wp.launch(k.update_p, dim=n, device=dev, inputs=[self.z, self._beta, self.p, self._done])
+                vi, self.p, self.q, self.inv_diag, self._rz, self._pq, x, self.r, self.z, self._rz_new, self._done,
+                self._all_done])
+            wp.launch(k.control, dim=ni, device=dev, inputs=[
+                self._rz, self._rz0, self._pq, self._rz_new, self._beta, tol2, self._done])
+            wp.launch(k.count, dim=1, device=dev, inputs=[self._done, ni, self._iterations, self._all_done])
+            wp.launch(k.update_p, dim=n, device=dev, inputs=[vi, self.z, self._beta, self.p, self._done,
+                                                             self._all_done])
 
     @property
     def iteration_counter(self) -> wp.array:
@@ -280,6 +330,7 @@ class BlockJacobiPCG:
         return int(self._iterations.numpy()[0])
 
     def residual_ratio(self) -> float:
-        """sqrt(r.M^-1 r / r0.M^-1 r0) at the end of the last solve (host sync)."""
-        rz, rz0 = float(self._rz.numpy()[0]), float(self._rz0.numpy()[0])
-        return (max(rz, 0.0) / rz0) ** 0.5 if rz0 > 0 else 0.0
+        """The largest per-instance sqrt(r.M^-1 r / r0.M^-1 r0) at the end of the last solve (host sync)."""
+        rz, rz0 = self._rz.numpy().astype(float), self._rz0.numpy().astype(float)
+        ratios = [(max(a, 0.0) / b) ** 0.5 if b > 0 else 0.0 for a, b in zip(rz, rz0)]
+        return max(ratios)
