@@ -8,6 +8,8 @@ inertia, damping at equal angles). They are also checked against the independent
 of :mod:`simgen.sim.energies.reference`, and the float32 kernels against those references.
 """
 
+import math
+
 import numpy as np
 import pytest
 import trimesh
@@ -437,8 +439,8 @@ def moving_box(velocity):
                    velocities=wp.array(np.tile(velocity, (len(v), 1)), dtype=wp.vec3, device="cpu"))
 
 
-@pytest.mark.parametrize("slip", ["sticking", "sliding"])
-def test_friction_fd_reference_and_psd(slip):
+@pytest.mark.parametrize("slip,max_load", [("sticking", math.inf), ("sliding", math.inf), ("sliding", 20.0)])
+def test_friction_fd_reference_and_psd(slip, max_load):
     v_body = np.array([0.2, 0.0, -0.1])
     mesh = moving_box(v_body)
     ids = mesh_ids(mesh)
@@ -451,8 +453,12 @@ def test_friction_fd_reference_and_psd(slip):
     force = frame.force.numpy()
     assert np.count_nonzero(force) == 7  # all but the two vertices beyond the margin
     dt = 1.0 / 300.0
-    params = FrictionParams(smoothing_velocity=1e-2)
+    params = FrictionParams(smoothing_velocity=1e-2, max_normal_load=max_load)
     eps = params.smoothing_velocity * dt
+    # The friction load: lambda capped at max_normal_load times the vertex weight m g.
+    load = np.minimum(force, max_load * 9.81 * m.host.vertex_mass)
+    if math.isfinite(max_load):
+        assert 0 < np.count_nonzero(load < force) < 7  # the cap binds on some contacts, not all
     rng = np.random.default_rng(6)
     tangential = rng.normal(size=x_start.shape) * np.array([1.0, 0.0, 1.0])
     tangential /= np.linalg.norm(tangential, axis=1, keepdims=True)
@@ -460,7 +466,7 @@ def test_friction_fd_reference_and_psd(slip):
     x = x_start + dt * v_body + slip_len * tangential + 1e-5 * rng.normal(size=x_start.shape)
     args = (vec3_array(m, x_start), ids, frame, dt, params)
     e, g, h = evaluate(m, eval_friction, x, *args)
-    e_ref, g_ref = ref.friction(x, x_start, frame.normal.numpy(), force, m.host.vertex_friction,
+    e_ref, g_ref = ref.friction(x, x_start, frame.normal.numpy(), load, m.host.vertex_friction,
                                 np.tile(dt * v_body, (len(x), 1)), eps)
     assert e.sum() == pytest.approx(e_ref.sum(), rel=1e-6) and rel_err(g, g_ref) < 1e-6
     check_fd(m, eval_friction, x, *args, step=2e-4 * eps)  # the mollifier varies on the scale eps
@@ -468,7 +474,7 @@ def test_friction_fd_reference_and_psd(slip):
     # sliding: force magnitude mu * lambda per vertex, opposite to the slip
     if slip == "sliding":
         mag = np.linalg.norm(g, axis=1)
-        assert np.allclose(mag, 0.3 * force, rtol=1e-3)
+        assert np.allclose(mag, 0.3 * load, rtol=1e-3)
 
 
 def test_friction_zero_force_when_moving_with_body():
@@ -481,11 +487,13 @@ def test_friction_zero_force_when_moving_with_body():
     update_contact_frame(m, vec3_array(m, x_start), ids, ContactParams(), frame)
     dt = 0.01
     e, g, _ = evaluate(m, eval_friction, x_start + dt * v_body, vec3_array(m, x_start), ids, frame, dt)
-    eps = FrictionParams().smoothing_velocity * dt
+    params = FrictionParams()
+    eps = params.smoothing_velocity * dt
+    load = np.minimum(frame.force.numpy(), params.max_normal_load * 9.81 * m.host.vertex_mass)
     # zero slip up to the float32 body velocity (barycentric weights summing to 1 +- 1e-7): the
     # sticking stiffness 2 mu lambda / eps times that residual slip
-    assert np.abs(g).max() <= 0.3 * frame.force.numpy().max() * (2.0 / eps) * 1e-7 * dt * 0.5
-    assert e.sum() == pytest.approx(np.sum(0.3 * frame.force.numpy() * eps / 3.0), rel=1e-9)
+    assert np.abs(g).max() <= 0.3 * load.max() * (2.0 / eps) * 1e-7 * dt * 0.5
+    assert e.sum() == pytest.approx(np.sum(0.3 * load * eps / 3.0), rel=1e-9)
 
 
 # -- damping ----------------------------------------------------------------------------------------
