@@ -6,6 +6,7 @@
     solver = ImplicitSolver(model, SolverConfig())
     solver.step(state, state, body, dt)     # body: a BodyCollider or None
     result = simulate("tshirt", body_model, "walk", betas, SimulationConfig())  # garment on a moving body
+    results = simulate_batch("tshirt", body_model, [SimulationJob("walk", betas), ...])  # N in one system
 """
 
 from simgen.sim.materials import MATERIALS, Material, get_material
@@ -14,10 +15,12 @@ from simgen.sim.energies import ContactParams, FrictionParams, GravityParams
 from simgen.sim.collider import BodyCollider
 from simgen.sim.linear import BlockJacobiPCG
 from simgen.sim.solver import ImplicitSolver, SolverConfig, SolverDivergedError
-from simgen.sim.driver import FRAME_STAT_KEYS, SimulationConfig, SimulationResult, simulate
+from simgen.sim.driver import (FRAME_STAT_KEYS, SimulationConfig, SimulationFailure, SimulationJob, SimulationResult,
+                               simulate, simulate_batch)
 
 __all__ = [
     "Material", "MATERIALS", "get_material", "ClothModel", "ClothModelBuilder", "ClothState",
     "ContactParams", "FrictionParams", "GravityParams", "BodyCollider", "BlockJacobiPCG", "ImplicitSolver",
-    "SolverConfig", "SolverDivergedError", "SimulationConfig", "SimulationResult", "simulate", "FRAME_STAT_KEYS",
+    "SolverConfig", "SolverDivergedError", "SimulationConfig", "SimulationResult", "SimulationJob",
+    "SimulationFailure", "simulate", "simulate_batch", "FRAME_STAT_KEYS",
 ]

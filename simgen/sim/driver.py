@@ -48,7 +48,8 @@ from simgen.sim.materials import Material, get_material
 from simgen.sim.model import ClothModel
 from simgen.sim.solver import ImplicitSolver, SolverConfig
 
-__all__ = ["SimulationConfig", "SimulationResult", "simulate", "PHASES", "FRAME_STAT_KEYS"]
+__all__ = ["SimulationConfig", "SimulationResult", "SimulationJob", "SimulationFailure", "simulate",
+           "simulate_batch", "PHASES", "FRAME_STAT_KEYS"]
 
 PHASES = ("relax", "ramp", "rest", "animate")
 
@@ -84,6 +85,8 @@ class SimulationConfig:
     query_distance [m]: deepest penetration the statistics can see.
     record_body: keep the posed body vertices of every output frame (SimulationResult.body_vertices).
     device: Warp device (None: Warp's default).
+    cuda_graph: on CUDA, replay each frame's substeps as one captured CUDA graph (see
+      :func:`simulate_batch`); the CPU always runs them eagerly.
     """
 
     fps: float | None = None
@@ -98,6 +101,7 @@ class SimulationConfig:
     query_distance: float = 0.05
     record_body: bool = False
     device: str | None = None
+    cuda_graph: bool = True
 
     def __post_init__(self) -> None:
         if self.fps is not None and not (isinstance(self.fps, (int, float)) and not isinstance(self.fps, bool)
@@ -199,7 +203,8 @@ class SimulationResult:
 @wp.kernel(enable_backward=False)
 def _classify_inside(
     x: wp.array(dtype=wp.vec3),
-    winding_mesh: wp.uint64,
+    vertex_instance: wp.array(dtype=wp.int32),
+    winding_meshes: wp.array(dtype=wp.uint64),
     query_distance: float,
     probe: float,
     depth: wp.array(dtype=wp.float32),
@@ -214,6 +219,7 @@ def _classify_inside(
     inside[i] = 0
     self_hit[i] = 0
     xi = x[i]
+    winding_mesh = winding_meshes[vertex_instance[i]]
     q = wp.mesh_query_point_sign_winding_number(winding_mesh, xi, query_distance, 2.0, 0.5)
     if not q.result or q.sign > 0.0:
         return
@@ -235,7 +241,7 @@ def _classify_inside(
 
 
 class _FrameStats:
-    """Per-frame statistics of one instance: penetration at the output frame + solver counters."""
+    """Per-frame statistics of every instance: penetration at the output frame."""
 
     def __init__(self, model: ClothModel, collider: BodyCollider, config: SimulationConfig) -> None:
         dev = model.device
@@ -244,26 +250,36 @@ class _FrameStats:
         self.depth = wp.zeros(n, dtype=wp.float32, device=dev)
         self.inside = wp.zeros(n, dtype=wp.int32, device=dev)
         self.self_hit = wp.zeros(n, dtype=wp.int32, device=dev)
-        # The collider's meshes lack winding-number support; a second BVH on the same points adds it
-        # and is refit only when statistics are taken.
+        # The collider's meshes lack winding-number support; a second BVH per instance on the same
+        # points adds it and is refit only when statistics are taken.
         nv = collider.num_body_vertices
-        self.winding_mesh = wp.Mesh(points=collider.points[:nv], indices=collider.faces, support_winding_number=True)
+        self.winding_meshes = [
+            wp.Mesh(points=collider.points[k * nv:(k + 1) * nv], indices=collider.faces, support_winding_number=True)
+            for k in range(collider.num_instances)]
+        self.winding_ids = wp.array([m.id for m in self.winding_meshes], dtype=wp.uint64, device=dev)
+        self.starts = np.asarray(model.vertex_start)
 
-    def measure(self, positions: wp.array) -> dict:
-        self.winding_mesh.refit()
+    def measure(self, positions: wp.array) -> list[dict]:
+        """One dict per instance (keys: the penetration entries of FRAME_STAT_KEYS)."""
+        for m in self.winding_meshes:
+            m.refit()
         cfg = self.config
         wp.launch(_classify_inside, dim=self.model.num_vertices, device=self.model.device,
-                  inputs=[positions, self.winding_mesh.id, float(cfg.query_distance),
+                  inputs=[positions, self.model.vertex_instance, self.winding_ids, float(cfg.query_distance),
                           float(cfg.self_intersection_probe), self.depth, self.inside, self.self_hit])
         depth, inside, self_hit = self.depth.numpy(), self.inside.numpy(), self.self_hit.numpy()
-        regular = (inside != 0) & (self_hit == 0)
-        return dict(
-            max_depth=float(depth.max(initial=0.0)),
-            max_depth_regular=float(depth[regular].max(initial=0.0)),
-            inside_count=int(inside.sum()),
-            inside_share=float(inside.sum()) / len(inside),
-            self_intersection_count=int(self_hit.sum()),
-        )
+        rows = []
+        for a, b in zip(self.starts[:-1], self.starts[1:]):
+            d, ins, sh = depth[a:b], inside[a:b], self_hit[a:b]
+            regular = (ins != 0) & (sh == 0)
+            rows.append(dict(
+                max_depth=float(d.max(initial=0.0)),
+                max_depth_regular=float(d[regular].max(initial=0.0)),
+                inside_count=int(ins.sum()),
+                inside_share=float(ins.sum()) / max(b - a, 1),
+                self_intersection_count=int(sh.sum()),
+            ))
+        return rows
 
 
 def _stack_stats(rows: list[dict]) -> dict:
@@ -312,6 +328,34 @@ def _trans_at(clip, times: np.ndarray) -> np.ndarray:
 
 
 # ------------------------------------------------------------------------------------ simulate
+@dataclass(frozen=True)
+class SimulationJob:
+    """One instance of :func:`simulate_batch`.
+
+    clip: :class:`MotionClip` or a library motion name; betas: (B',) shape coefficients (None:
+    zeros); frames: output frames (None: the whole clip; more than it holds repeat its last pose);
+    key: a label carried into the result's metadata and into failures (default: the job's index);
+    material: preset name or :class:`Material` (None: the config's, with its overrides).
+    """
+
+    clip: object
+    betas: object = None
+    frames: int | None = None
+    key: str | None = None
+    material: str | Material | None = None
+
+
+@dataclass
+class SimulationFailure:
+    """The slot of a :func:`simulate_batch` instance that diverged: its key, the reason, and where
+    (``phase`` of the start protocol or "animate", ``frame`` index within that phase)."""
+
+    key: str
+    message: str
+    phase: str
+    frame: int
+
+
 def simulate(garment, body, clip, betas=None, config: SimulationConfig | None = None, *,
              frames: int | None = None, progress=None) -> SimulationResult:
     """Simulate ``garment`` on ``body`` shaped by ``betas`` doing ``clip``, after the start protocol.
@@ -325,148 +369,312 @@ def simulate(garment, body, clip, betas=None, config: SimulationConfig | None = 
     progress: optional callable(done, total, phase) after each simulated frame (protocol included).
     Returns a :class:`SimulationResult`; positions hold the clip's frames only, protocol frames are
     in ``protocol_positions``. Raises :class:`simgen.sim.SolverDivergedError` if the cloth blows up.
+    This is :func:`simulate_batch` with one job.
+    """
+    (result,) = simulate_batch(garment, body, [SimulationJob(clip, betas=betas, frames=frames)], config,
+                               progress=progress)
+    if isinstance(result, SimulationFailure):
+        from simgen.sim.solver import SolverDivergedError
+
+        raise SolverDivergedError(f"{result.message} (phase {result.phase}, frame {result.frame})", instances=[0])
+    return result
+
+
+def _check_frames(frames) -> None:
+    if frames is not None and (isinstance(frames, bool) or not isinstance(frames, (int, np.integer)) or frames < 1):
+        raise InputError(f"frames must be an integer >= 1, got {frames!r}")
+
+
+def simulate_batch(garment, body, jobs, config: SimulationConfig | None = None, *,
+                   progress=None) -> list:
+    """Simulate N jobs of one garment on one body model as one batched system.
+
+    Every :class:`SimulationJob` is its own instance (garment copy, material, body shape, motion) of
+    one :class:`ClothModel` with N instances and one posed body mesh each; all step together
+    through the start protocol and the animation (:func:`simulate` describes both).
+    Clips of unequal length share the batch: it runs to the longest job, a shorter clip holds its
+    last pose meanwhile, and each result is cut to its own frames. All clips must share one frame
+    rate (config.fps, or the clips' own when it is None).
+
+    On CUDA each frame's substeps (body posing, refits, solver) replay as one captured CUDA graph
+    (``config.cuda_graph``); the guard's checks run inside it and are read once per frame: if any
+    instance failed, the frame is restored and redone uncaptured with the guard's half-step retries.
+    An instance that still diverges is frozen (pinned where it is, its body switched off) and its
+    slot returns a :class:`SimulationFailure`; the others go on and the frame is redone for them.
+
+    progress: optional callable(done, total, phase) after each batch frame (protocol included).
+    Returns one :class:`SimulationResult` or :class:`SimulationFailure` per job, in order.
     """
     from simgen.body.warp_lbs import WarpBody, quats_from_simgen
+    from simgen.motion.library import load_motion
     from simgen.motion.ops import quats_at
+    from simgen.motion.clip import MotionClip
 
     cfg = config if config is not None else SimulationConfig()
     if not isinstance(cfg, SimulationConfig):
         raise InputError(f"config must be a SimulationConfig, got {type(cfg).__name__}")
-    garment, body, clip = _resolve_inputs(garment, body, clip)
-    target_betas = np.zeros(body.num_betas) if betas is None else body.check_betas(betas).reshape(-1)
-    fps = float(cfg.fps) if cfg.fps is not None else float(clip.fps)
-    num_out = int(math.floor(clip.duration * fps + 1e-9)) + 1 if frames is None else frames
-    if isinstance(num_out, bool) or not isinstance(num_out, (int, np.integer)) or num_out < 1:
-        raise InputError(f"frames must be an integer >= 1, got {frames!r}")
-    num_out = int(num_out)
-    S = cfg.substeps
+    jobs = list(jobs)
+    if not jobs:
+        raise InputError("simulate_batch needs at least one SimulationJob")
+    for i, job in enumerate(jobs):
+        if not isinstance(job, SimulationJob):
+            raise InputError(f"job {i} must be a SimulationJob, got {type(job).__name__}")
+        _check_frames(job.frames)
+    garment, body, _ = _resolve_inputs(garment, body, jobs[0].clip)
+    clips_by_name: dict = {}
+
+    def clip_of(c):
+        if isinstance(c, str):
+            if c not in clips_by_name:
+                clips_by_name[c] = load_motion(c)
+            return clips_by_name[c]
+        if not isinstance(c, MotionClip):
+            raise InputError(f"clip must be a MotionClip or a motion name, got {type(c).__name__}")
+        return c
+
+    clips = [clip_of(j.clip) for j in jobs]
+    keys = [str(j.key) if j.key is not None else str(i) for i, j in enumerate(jobs)]
+    if cfg.fps is None and len({float(c.fps) for c in clips}) > 1:
+        raise InputError("the clips of one batch have different frame rates "
+                         f"({sorted({float(c.fps) for c in clips})}); set SimulationConfig.fps")
+    fps = float(cfg.fps) if cfg.fps is not None else float(clips[0].fps)
+    num_out = [int(math.floor(c.duration * fps + 1e-9)) + 1 if j.frames is None else int(j.frames)
+               for j, c in zip(jobs, clips)]
+    target_betas = [np.zeros(body.num_betas) if j.betas is None else body.check_betas(j.betas).reshape(-1)
+                    for j in jobs]
+    N, S = len(jobs), cfg.substeps
     frame_dt = 1.0 / fps
     h = frame_dt / S
     device = wp.get_device(cfg.device)
-    material = cfg.resolve_material(garment)
+    materials = [cfg.resolve_material(garment) if j.material is None
+                 else replace(get_material(j.material), **cfg.material_overrides) for j in jobs]
 
-    model = ClothModel.from_garment(garment, material, device=device)
+    # One model instance per job; jobs with equal materials reuse one built instance.
+    built: list = []
+    for mat in materials:
+        if not any(m == mat for m, _ in built):
+            built.append((mat, ClothModel.from_garment(garment, mat, device=device)))
+    parts = [next(mdl for m, mdl in built if m == mat) for mat in materials]
+    model = parts[0] if N == 1 else ClothModel.concatenate(parts)
+    starts = np.asarray(model.vertex_start)
+    nv = garment.num_vertices
     solver = ImplicitSolver(model, cfg.solver)
     nb = max(body.num_betas, 1)
-    wbody = WarpBody(body, max_batch=1, device=device)
-    # Per-frame device buffers: substep s poses from row s (views, no allocation in the loop).
-    quats_dev = wp.zeros((S, 24), dtype=wp.quat, device=device)
-    trans_dev = wp.zeros(S, dtype=wp.vec3, device=device)
-    betas_dev = wp.zeros((S, nb), dtype=wp.float32, device=device)
-    quat_rows = [quats_dev[s:s + 1] for s in range(S)]
-    trans_rows = [trans_dev[s:s + 1] for s in range(S)]
-    betas_rows = [betas_dev[s:s + 1] for s in range(S)]
+    wbody = WarpBody(body, max_batch=N, device=device)
+    # Per-frame device buffers, substep s poses from row s (views, no allocation in the loop).
+    quats_dev = wp.zeros((S, N, 24), dtype=wp.quat, device=device)
+    trans_dev = wp.zeros((S, N), dtype=wp.vec3, device=device)
+    betas_dev = wp.zeros((S, N, nb), dtype=wp.float32, device=device)
+    quat_rows = [quats_dev[s] for s in range(S)]
+    trans_rows = [trans_dev[s] for s in range(S)]
+    betas_rows = [betas_dev[s] for s in range(S)]
 
-    trans0 = clip.trans[0].astype(np.float64)
-    q_first = quats_at(clip, np.array([0.0]))[0]                      # (24, 4) wxyz, w >= 0
-    betas_full = np.zeros(nb)
-    betas_full[:len(target_betas)] = target_betas
+    trans0 = np.stack([c.trans[0].astype(np.float64) for c in clips])              # (N, 3)
+    q_first = np.stack([quats_at(c, np.array([0.0]))[0] for c in clips])          # (N, 24, 4) wxyz
+    betas_full = np.zeros((N, nb))
+    for i, b in enumerate(target_betas):
+        betas_full[i, :len(b)] = b
+    identity = quats_from_simgen(_identity_quats(1))[0].astype(np.float32)       # (24, 4) xyzw
 
-    # Template body at rest, translated to the clip's start; the garment rigidly with it.
-    wbody.set_shape(np.zeros((1, body.num_betas)))
-    quats_dev.assign(np.broadcast_to(quats_from_simgen(_identity_quats(1)), (S, 24, 4)))
-    trans_dev.assign(np.broadcast_to(trans0.astype(np.float32), (S, 3)))
+    # Template body at rest, translated to each clip's start; each garment rigidly with it.
+    wbody.set_shape(np.zeros((1, body.num_betas)), num_instances=N)
+    quats_dev.assign(np.broadcast_to(identity, (S, N, 24, 4)))
+    trans_dev.assign(np.broadcast_to(trans0.astype(np.float32), (S, N, 3)))
     wbody.pose_from_quats(quat_rows[0], trans_rows[0])
     collider = BodyCollider.from_warp_body(wbody, device=device)
     state = model.state()
-    x0 = (np.asarray(garment.vertices, dtype=np.float64) + trans0).astype(np.float32)
-    state.positions.assign(x0)
+    x0 = (np.asarray(garment.vertices, dtype=np.float64)[None] + trans0[:, None]).astype(np.float32)
+    state.positions.assign(x0.reshape(-1, 3))
     state.velocities.zero_()
     stats_probe = _FrameStats(model, collider, cfg)
     initial = stats_probe.measure(state.positions)
-    if initial["inside_count"]:
+    if any(r["inside_count"] for r in initial):
         # The garment must never start inside the body: project what a bad template left inside.
         collider.project(model, state, offset=cfg.solver.projection_offset, query_distance=cfg.query_distance)
 
+    T_max = max(num_out)
     schedule = ([("relax", k) for k in range(cfg.relax_frames)] + [("ramp", k) for k in range(cfg.ramp_frames)]
-                + [("rest", k) for k in range(cfg.rest_frames)] + [("animate", k) for k in range(num_out)])
-    fractions = np.arange(1, S + 1) / S                                # substep end times within a frame
+                + [("rest", k) for k in range(cfg.rest_frames)] + [("animate", k) for k in range(T_max)])
+    fractions = np.arange(1, S + 1) / S                                           # substep ends in a frame
+    # Animation targets of every job, precomputed over its whole clip (one slerp call each).
+    anim_times = ((np.arange(max(T_max - 1, 0))[:, None] + fractions[None]) * frame_dt).reshape(-1)
+    anim_quats = [quats_from_simgen(quats_at(c, np.minimum(anim_times, c.duration))).astype(np.float32)
+                  .reshape(-1, S, 24, 4) for c in clips]
+    anim_trans = [_trans_at(c, anim_times).astype(np.float32).reshape(-1, S, 3) for c in clips]
 
     def body_targets(phase: str, k: int):
-        """Joint rotations wxyz (S, 24, 4), trans (S, 3) and betas (S, nb) at the frame's substep ends."""
+        """Joint rotations xyzw (S, N, 24, 4), trans (S, N, 3) and betas (S, N, nb) at the frame's substep ends."""
+        tr = np.broadcast_to(trans0[None], (S, N, 3))
         if phase == "relax":
-            return _identity_quats(S), np.repeat(trans0[None], S, 0), np.zeros((S, nb))
+            return np.broadcast_to(identity, (S, N, 24, 4)), tr, np.zeros((S, N, nb))
         if phase == "ramp":
-            u = (k + fractions) / cfg.ramp_frames                      # 0 -> 1 over the ramp, linear
-            q = quat_slerp(_identity_quats(1), q_first[None], u[:, None] * np.ones((S, 24)))
-            return q, np.repeat(trans0[None], S, 0), u[:, None] * betas_full[None]
+            u = (k + fractions) / cfg.ramp_frames                                  # 0 -> 1, linear
+            q = quat_slerp(_identity_quats(1)[None], q_first[None], u[:, None, None] * np.ones((S, N, 24)))
+            return quats_from_simgen(q), tr, u[:, None, None] * betas_full[None]
         if phase == "rest":
-            return np.repeat(q_first[None], S, 0), np.repeat(trans0[None], S, 0), np.repeat(betas_full[None], S, 0)
+            q = quats_from_simgen(q_first)
+            return np.broadcast_to(q[None], (S, N, 24, 4)), tr, np.broadcast_to(betas_full[None], (S, N, nb))
         # animate: output frame k is clip time k / fps; frame 0 is the rest phase's last state.
-        times = (k - 1 + fractions) * frame_dt
-        return quats_at(clip, times), _trans_at(clip, times), np.repeat(betas_full[None], S, 0)
+        return (np.stack([a[k - 1] for a in anim_quats], axis=1), np.stack([a[k - 1] for a in anim_trans], axis=1),
+                np.broadcast_to(betas_full[None], (S, N, nb)))
 
-    out_positions, out_stats, out_body = [], [], []
-    proto_positions, proto_phases, proto_stats = [], [], []
+    # -- one frame: S substeps of posing, refit and solver step; eager or as a CUDA graph ----------
+    use_graph = bool(cfg.cuda_graph) and device.is_cuda
+    graphs: dict = {}
+    frame_backup = model.state()
+    body_backup = wp.clone(collider.points)
+
+    def run_substeps(reshape: bool, deferred: bool) -> None:
+        if deferred:
+            solver.clear_deferred_guard()
+        for s in range(S):
+            if reshape:
+                wbody.set_shape(betas_rows[s])
+            wbody.pose_from_quats(quat_rows[s], trans_rows[s])
+            collider.update(dt=h)
+            solver.step(state, state, collider, h, deferred_guard=deferred)
+
+    def restore_frame_start() -> None:
+        state.assign(frame_backup)
+        wp.copy(collider.points, body_backup)
+        solver.reset_contacts()
+
+    failures: dict[int, SimulationFailure] = {}
+
+    def freeze(instances, phase: str, k: int, message: str) -> None:
+        pinned = model.vertex_pinned.numpy()
+        ids = collider.mesh_ids.numpy()
+        vel = frame_backup.velocities.numpy()
+        for i in instances:
+            failures[i] = SimulationFailure(keys[i], message, phase, k)
+            pinned[starts[i]:starts[i + 1]] = 1
+            vel[starts[i]:starts[i + 1]] = 0.0
+            ids[i] = 0
+        model.vertex_pinned.assign(pinned)
+        collider.mesh_ids.assign(ids)
+        frame_backup.velocities.assign(vel)
+
+    def run_frame_eager(reshape: bool, phase: str, k: int) -> None:
+        from simgen.sim.solver import SolverDivergedError
+
+        while True:
+            try:
+                run_substeps(reshape, deferred=False)
+                return
+            except SolverDivergedError as exc:
+                bad = [i for i in exc.instances if i not in failures] or [i for i in range(N) if i not in failures]
+                freeze(bad, phase, k, f"solver diverged: {exc}")
+                restore_frame_start()
+                if len(failures) == N:
+                    return
+
+    def run_frame(reshape: bool, phase: str, k: int, first: bool) -> None:
+        frame_backup.assign(state)
+        wp.copy(body_backup, collider.points)
+        if not use_graph or first:
+            # The first frame runs eagerly: it loads every kernel and takes the first lagged contacts.
+            run_frame_eager(reshape, phase, k)
+            return
+        if reshape not in graphs:
+            before = solver.host_counts()
+            with wp.ScopedCapture(device=device, force_module_load=False) as capture:
+                run_substeps(reshape, deferred=True)
+            after = solver.host_counts()
+            graphs[reshape] = (capture.graph, {key: after[key] - before[key] for key in after})
+            solver.add_host_counts({key: -v for key, v in graphs[reshape][1].items()})
+        graph, delta = graphs[reshape]
+        wp.capture_launch(graph)
+        solver.add_host_counts(delta)
+        if solver.deferred_bad.numpy().any():
+            restore_frame_start()
+            run_frame_eager(reshape, phase, k)
+
+    out_positions = [[] for _ in range(N)]
+    out_stats = [[] for _ in range(N)]
+    out_body = [[] for _ in range(N)]
+    proto_positions = [[] for _ in range(N)]
+    proto_stats = [[] for _ in range(N)]
+    proto_phases = []
     total = len(schedule)
-    current_betas = np.zeros(nb)
+    current_betas = np.zeros((N, nb))
     t_start = time.perf_counter()
     for done, (phase, k) in enumerate(schedule):
         t0 = time.perf_counter()
         solver.reset_stats()
         # Output frame 0 of the animation is the protocol's end state: no step, only statistics.
-        if not (phase == "animate" and k == 0):
+        if not (phase == "animate" and k == 0) and len(failures) < N:
             q, tr, bt = body_targets(phase, k)
-            quats_dev.assign(quats_from_simgen(q).reshape(S, 24, 4))
-            trans_dev.assign(tr.astype(np.float32))
+            quats_dev.assign(np.ascontiguousarray(q, dtype=np.float32))
+            trans_dev.assign(np.ascontiguousarray(tr, dtype=np.float32))
             # Re-shape only while the betas change (ramp), never for a shapeless body model.
             reshape = body.num_betas > 0 and not np.all(bt == current_betas[None])
             if reshape:
-                betas_dev.assign(bt.astype(np.float32))
-            for s in range(S):
-                if reshape:
-                    wbody.set_shape(betas_rows[s])
-                wbody.pose_from_quats(quat_rows[s], trans_rows[s])
-                collider.update(dt=h)
-                solver.step(state, state, collider, h)
-            current_betas = bt[-1].copy()
-        row = stats_probe.measure(state.positions)
+                betas_dev.assign(np.ascontiguousarray(bt, dtype=np.float32))
+            run_frame(reshape, phase, k, first=(done == 0))
+            current_betas = np.array(bt[-1])
+        rows = stats_probe.measure(state.positions)
         st = solver.stats
-        row.update(depth_before_projection=st["max_penetration"], retries=st["retries"],
-                   unresolved=st["unresolved"], newton_iterations=st["newton_iterations"],
-                   cg_iterations=st["cg_iterations"])
+        per = solver.instance_stats
         x = state.positions.numpy().astype(np.float32)
-        row["wall_time"] = time.perf_counter() - t0
-        if phase == "animate":
-            out_positions.append(x)
-            out_stats.append(row)
-            if cfg.record_body:
-                out_body.append(wbody.vertices.numpy()[0].astype(np.float32))
-        else:
-            proto_positions.append(x)
+        wall = time.perf_counter() - t0
+        body_now = wbody.vertices.numpy() if cfg.record_body and phase == "animate" else None
+        for i in range(N):
+            if i in failures:
+                continue
+            row = rows[i]
+            row.update(depth_before_projection=float(per["max_penetration"][i]), retries=int(per["retries"][i]),
+                       unresolved=int(per["unresolved"][i]), newton_iterations=st["newton_iterations"],
+                       cg_iterations=st["cg_iterations"], wall_time=wall)
+            xi = x[starts[i]:starts[i + 1]]
+            if phase == "animate":
+                if k < num_out[i]:
+                    out_positions[i].append(xi)
+                    out_stats[i].append(row)
+                    if body_now is not None:
+                        out_body[i].append(body_now[i].astype(np.float32))
+            else:
+                proto_positions[i].append(xi)
+                proto_stats[i].append(row)
+        if phase != "animate":
             proto_phases.append(phase)
-            proto_stats.append(row)
         if progress is not None:
             progress(done + 1, total, phase)
-    wall = time.perf_counter() - t_start
+    wall_total = time.perf_counter() - t_start
 
-    nv = model.num_vertices
-    stats = _stack_stats(out_stats)
-    metadata = dict(
-        garment=garment.name, garment_vertices=int(nv), garment_triangles=int(len(garment.faces)),
-        body=body.name, body_vertices=int(body.num_vertices), motion=clip.name, motion_fps=float(clip.fps),
-        fps=fps, substeps=S, dt=h, frames=num_out, betas=[float(b) for b in target_betas],
-        material=asdict(material),
-        config=dict(relax_frames=cfg.relax_frames, ramp_frames=cfg.ramp_frames, rest_frames=cfg.rest_frames,
-                    self_intersection_probe=cfg.self_intersection_probe, query_distance=cfg.query_distance,
-                    device=str(device)),
-        solver=json.loads(json.dumps(asdict(cfg.solver), default=float)),
-        initial_inside=int(initial["inside_count"]),
-        wall_time=wall,
-        wall_time_per_frame=wall / total,
-        max_depth_regular=float(stats["max_depth_regular"].max()),
-        max_self_intersection_count=int(stats["self_intersection_count"].max()),
-        retries=int(stats["retries"].sum() + sum(r["retries"] for r in proto_stats)),
-    )
-    V3 = (0, nv, 3)
-    return SimulationResult(
-        positions=np.stack(out_positions),
-        faces=np.asarray(garment.faces, dtype=np.int32),
-        fps=fps, dt=h, stats=stats,
-        protocol_positions=np.stack(proto_positions) if proto_positions else np.zeros(V3, np.float32),
-        protocol_phases=np.array(proto_phases, dtype=str),
-        protocol_stats=_stack_stats(proto_stats) if proto_stats else {k: np.zeros(0) for k in FRAME_STAT_KEYS},
-        body_vertices=np.stack(out_body) if cfg.record_body else None,
-        body_faces=wbody.faces.numpy().reshape(-1, 3).astype(np.int32),
-        metadata=metadata,
-    )
+    body_faces = wbody.faces.numpy().reshape(-1, 3).astype(np.int32)
+    results: list = []
+    for i in range(N):
+        if i in failures:
+            results.append(failures[i])
+            continue
+        stats = _stack_stats(out_stats[i])
+        metadata = dict(
+            key=keys[i], garment=garment.name, garment_vertices=int(nv), garment_triangles=int(len(garment.faces)),
+            body=body.name, body_vertices=int(body.num_vertices), motion=clips[i].name, motion_fps=float(clips[i].fps),
+            fps=fps, substeps=S, dt=h, frames=num_out[i], betas=[float(b) for b in target_betas[i]],
+            material=asdict(materials[i]),
+            config=dict(relax_frames=cfg.relax_frames, ramp_frames=cfg.ramp_frames, rest_frames=cfg.rest_frames,
+                        self_intersection_probe=cfg.self_intersection_probe, query_distance=cfg.query_distance,
+                        device=str(device), cuda_graph=use_graph),
+            solver=json.loads(json.dumps(asdict(cfg.solver), default=float)),
+            batch_size=N,
+            initial_inside=int(initial[i]["inside_count"]),
+            wall_time=wall_total,
+            wall_time_per_frame=wall_total / total,
+            max_depth_regular=float(stats["max_depth_regular"].max()),
+            max_self_intersection_count=int(stats["self_intersection_count"].max()),
+            retries=int(stats["retries"].sum() + sum(r["retries"] for r in proto_stats[i])),
+        )
+        results.append(SimulationResult(
+            positions=np.stack(out_positions[i]),
+            faces=np.asarray(garment.faces, dtype=np.int32),
+            fps=fps, dt=h, stats=stats,
+            protocol_positions=np.stack(proto_positions[i]) if proto_positions[i] else np.zeros((0, nv, 3), np.float32),
+            protocol_phases=np.array(proto_phases, dtype=str),
+            protocol_stats=(_stack_stats(proto_stats[i]) if proto_stats[i]
+                            else {key: np.zeros(0) for key in FRAME_STAT_KEYS}),
+            body_vertices=np.stack(out_body[i]) if cfg.record_body else None,
+            body_faces=body_faces,
+            metadata=metadata,
+        ))
+    return results

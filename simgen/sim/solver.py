@@ -28,7 +28,10 @@ end of the previous substep (after the projection), where cloth and body are at 
 Host synchronisation: the Newton/PCG/line-search sequence itself launches a fixed number of kernels
 and reads nothing back (capturable as a CUDA graph). The guard (one int per substep),
 ``newton_tolerance`` > 0 (one float per Newton iteration) and :attr:`ImplicitSolver.stats` read
-from the device; turn the first two off for capture.
+from the device. For capture, ``step(..., deferred_guard=True)`` runs the guard's checks without
+reading them: each instance's failure bits accumulate in :attr:`ImplicitSolver.deferred_bad`
+(cleared by :meth:`ImplicitSolver.clear_deferred_guard`), and the caller reads them once after a
+whole captured frame and redoes the frame uncaptured, with retries, if any instance failed.
 """
 
 
@@ -53,7 +56,15 @@ __all__ = ["SolverConfig", "ImplicitSolver", "SolverDivergedError", "solver_kern
 
 
 class SolverDivergedError(RuntimeError):
-    """A step still produced non-finite positions after every allowed retry."""
+    """A step still produced non-finite positions after every allowed retry.
+
+    instances: indices of the model instances whose positions were non-finite (the others were
+    fine; a batched caller can freeze the failed ones and redo the step for the rest).
+    """
+
+    def __init__(self, message: str, instances=()) -> None:
+        super().__init__(message)
+        self.instances = [int(i) for i in instances]
 
 
 @dataclass(frozen=True)
@@ -218,6 +229,11 @@ def solver_kernels(scalar) -> SimpleNamespace:
         total[0] = total[0] + wp.int64(counter[0])
 
     @wp.kernel(enable_backward=False, module=mod)
+    def accumulate_bad(bad: wp.array(dtype=wp.int32), total: wp.array(dtype=wp.int32)):
+        k = wp.tid()
+        total[k] = total[k] | bad[k]
+
+    @wp.kernel(enable_backward=False, module=mod)
     def keep_max(value: wp.array(dtype=scalar), running: wp.array(dtype=scalar)):
         k = wp.tid()
         running[k] = wp.max(running[k], value[k])
@@ -225,7 +241,7 @@ def solver_kernels(scalar) -> SimpleNamespace:
     return SimpleNamespace(predict=predict, instance_dot=instance_dot, ls_init=ls_init, ls_trial=ls_trial,
                            ls_check=ls_check, ls_finalize=ls_finalize, apply_step=apply_step, velocity=velocity,
                            max_abs=max_abs, check_vertices=check_vertices, check_energy=check_energy, accumulate=accumulate,
-                           keep_max=keep_max)
+                           accumulate_bad=accumulate_bad, keep_max=keep_max)
 
 
 class ImplicitSolver:
@@ -278,6 +294,10 @@ class ImplicitSolver:
         self._depth_max = wp.zeros(ni, dtype=T.scalar, device=dev)
         self._inside = wp.zeros(ni, dtype=wp.int32, device=dev)
         self._counts = dict(steps=0, substeps=0, newton_iterations=0, retries=0, unresolved=0)
+        # Per instance: substeps it failed (retried) and steps left unresolved, since reset_stats.
+        self._instance_retries = np.zeros(ni, dtype=np.int64)
+        self._instance_unresolved = np.zeros(ni, dtype=np.int64)
+        self.deferred_bad = wp.zeros(ni, dtype=wp.int32, device=dev)
 
     # -- public -------------------------------------------------------------------------------
 
@@ -304,20 +324,47 @@ class ImplicitSolver:
         s["last_inside"] = int(self._inside.numpy().sum())
         return s
 
+    @property
+    def instance_stats(self) -> dict:
+        """Per-instance counters since :meth:`reset_stats` (host sync), each an (I,) array:
+        max_penetration [m] before projection, retries (failed substeps of that instance; the guard
+        redoes the whole batch, so every instance takes the half steps), unresolved."""
+        return dict(max_penetration=self._depth_max.numpy().astype(np.float64),
+                    retries=self._instance_retries.copy(), unresolved=self._instance_unresolved.copy())
+
+    def host_counts(self) -> dict:
+        """The host-side step counters (steps, substeps, newton_iterations, retries, unresolved)."""
+        return dict(self._counts)
+
+    def add_host_counts(self, delta: dict) -> None:
+        """Add counter increments, e.g. those of a captured frame each time its CUDA graph replays
+        (the Python that counts them runs only at capture)."""
+        for k, v in delta.items():
+            self._counts[k] += int(v)
+
+    def clear_deferred_guard(self) -> None:
+        """Zero :attr:`deferred_bad` (a memset, graph-capture safe)."""
+        self.deferred_bad.zero_()
+
     def reset_stats(self) -> None:
-        """Zero every counter of :attr:`stats`."""
+        """Zero every counter of :attr:`stats` and :attr:`instance_stats`."""
         for k in self._counts:
             self._counts[k] = 0
+        self._instance_retries[:] = 0
+        self._instance_unresolved[:] = 0
         self._cg_total.zero_()
         self._depth_max.zero_()
         self._inside.zero_()
 
-    def step(self, state_in: ClothState, state_out: ClothState, body: BodyCollider | None, dt: float) -> None:
+    def step(self, state_in: ClothState, state_out: ClothState, body: BodyCollider | None, dt: float, *,
+             deferred_guard: bool = False) -> None:
         """Advance ``state_in`` by dt [s] into ``state_out`` (they may be the same object).
 
         body: the :class:`BodyCollider` (one body per instance, already :meth:`~BodyCollider.update`d
         to the end of this step; with substeps it is interpolated from its previous position), or
         None for no body. Raises SolverDivergedError if a step stays non-finite after every retry.
+        deferred_guard: run the guard's checks but only OR their bits into :attr:`deferred_bad`,
+        with no host read and no retry (for CUDA graph capture; see the module doc).
         """
         try:
             dt = float(dt)
@@ -332,7 +379,10 @@ class ImplicitSolver:
         work.assign(state_in)
         n = cfg.substeps
         for s in range(n):
-            self._guarded_step(work, body, dt / n, s / n, (s + 1) / n, 0)
+            if deferred_guard:
+                self._deferred_step(work, body, dt / n, s / n, (s + 1) / n)
+            else:
+                self._guarded_step(work, body, dt / n, s / n, (s + 1) / n, 0)
             if body is not None and cfg.project:
                 self._inside.zero_()
                 self._depth.zero_()
@@ -346,7 +396,7 @@ class ImplicitSolver:
 
     # -- internals ----------------------------------------------------------------------------
 
-    def _guarded_step(self, state: ClothState, body, h: float, t0: float, t1: float, level: int) -> None:
+    def _place_body(self, state: ClothState, body, t0: float, t1: float) -> None:
         cfg = self.config
         if body is not None and cfg.friction is not None and not self._frame_valid:
             # No lagged contacts yet: take them at this step's start, cloth and body both at t0.
@@ -356,23 +406,34 @@ class ImplicitSolver:
             body.set_time(t1)
         elif body is not None and not (t0 == 0.0 and t1 == 1.0):
             body.set_time(t1)
+
+    def _deferred_step(self, state: ClothState, body, h: float, t0: float, t1: float) -> None:
+        self._place_body(state, body, t0, t1)
+        self._advance(state, body, h, deferred=True)
+
+    def _guarded_step(self, state: ClothState, body, h: float, t0: float, t1: float, level: int) -> None:
+        cfg = self.config
+        self._place_body(state, body, t0, t1)
         if not cfg.guard:
             self._advance(state, body, h)
             return
         backup = self._backups[level]
         backup.assign(state)
-        bad = self._advance(state, body, h)
+        bad_vec = self._advance(state, body, h)
+        bad = int(np.bitwise_or.reduce(bad_vec))
         if bad == 0:
             return
         if level >= cfg.max_retries:
             if bad & 1:
                 raise SolverDivergedError(
                     f"the cloth step still produced non-finite positions at dt = {h:.3g} s after "
-                    f"{cfg.max_retries} half-step retries")
+                    f"{cfg.max_retries} half-step retries", instances=np.nonzero(bad_vec & 1)[0])
             self._counts["unresolved"] += 1
+            self._instance_unresolved[bad_vec != 0] += 1
             return
         state.assign(backup)
         self._counts["retries"] += 1
+        self._instance_retries[bad_vec != 0] += 1
         tm = 0.5 * (t0 + t1)
         self._guarded_step(state, body, 0.5 * h, t0, tm, level + 1)
         self._guarded_step(state, body, 0.5 * h, tm, t1, level + 1)
@@ -391,8 +452,10 @@ class ImplicitSolver:
         if cfg.damping and self.has_damping:
             eval_damping(m, x, self.x_start, h, energy=energy, gradient=gradient, hessian=hessian)
 
-    def _advance(self, state: ClothState, body, h: float) -> int:
-        """One backward-Euler step of length h in place; returns the guard's bad bits (0 = fine)."""
+    def _advance(self, state: ClothState, body, h: float, *, deferred: bool = False):
+        """One backward-Euler step of length h in place; returns the guard's bad bits per instance,
+        (I,) int (0 = fine), or None without the guard or when ``deferred`` (bits OR-ed into
+        :attr:`deferred_bad` on the device instead)."""
         m, cfg, k = self.model, self.config, self.kernels
         dev, n, ni = m.device, m.num_vertices, m.num_instances
         x, v = state.positions, state.velocities
@@ -443,7 +506,7 @@ class ImplicitSolver:
         wp.launch(k.velocity, dim=n, device=dev, inputs=[x, self.x_start, 1.0 / h, v])
         if not cfg.guard:
             self._lag_contacts(state, body)
-            return 0
+            return None
         # bad: 1 non-finite, 2 too fast, 4 energy rose, 8 line search found no decrease.
         wp.launch(k.check_vertices, dim=n, device=dev,
                   inputs=[x, v, m.vertex_instance, cfg.max_speed * cfg.max_speed, self.bad])
@@ -452,8 +515,12 @@ class ImplicitSolver:
         wp.launch(k.check_energy, dim=ni, device=dev, inputs=[
             self.energy_start, self.energy, self.predicted, cfg.divergence_ratio * 0.5, self.energy_rel_tol,
             self.bad])
-        bad = int(np.bitwise_or.reduce(self.bad.numpy()))
-        if bad == 0:
+        if deferred:
+            wp.launch(k.accumulate_bad, dim=ni, device=dev, inputs=[self.bad, self.deferred_bad])
+            self._lag_contacts(state, body)
+            return None
+        bad = self.bad.numpy()
+        if not bad.any():
             self._lag_contacts(state, body)
         return bad
 
