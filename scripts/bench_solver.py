@@ -1,20 +1,34 @@
-"""Benchmark the implicit solver: the T-shirt draping on the open body in rest pose.
+"""Benchmark the implicit solver against Newton 1.8's cloth solvers (VBD, Style3D) in the same run.
 
-For each batch size N, N copies of the garment (one instance each, each with its own body mesh)
-step together; a 30 fps frame is ``--substeps`` solver steps. Prints one JSON object (device,
-commit, sizes, medians) and writes it to --out. The body is static here (rest pose): this measures
-the solver (assembly, PCG, contact, projection), not body skinning. Graph capture is not used yet,
-so launch overhead is included.
+Two measurements of our solver, then the peers:
 
-    python scripts/bench_solver.py --device cuda:0 --batches 1 16 64 --frames 20 --out bench.json
+- motion: the T-shirt on the open body doing a library motion through :func:`simgen.sim.simulate_batch`
+  (start protocol, then the clip; 30 fps frames of ``--substeps`` solver steps; the body is skinned
+  on the device at every substep and its BVHs refit). N jobs of one batch have different body
+  shapes (betas drawn uniformly in [-2, 2] for the first 4 components, instance 0 at zero).
+  ms/frame is the median, over the animated frames, of the frame's stepping time (posing, refits,
+  solver; a whole frame is one CUDA graph on CUDA), synchronised; per-frame statistics (winding-number
+  penetration query, copy to the host) are reported apart as the total wall time per frame.
+- static: the T-shirt draping onto the body held in rest pose, N copies stepping together, the
+  frame captured as one CUDA graph: the same setting as the Newton peers.
+- peers (``--peers vbd style3d``): scripts/bench_newton_peer.py on the same garment, body and
+  frames (static body; VBD with ``--vbd-iterations`` iterations per substep).
+
+Prints one JSON line per run and writes the whole result (device, commit, sizes, medians, ratios)
+to --out.
+
+    python scripts/bench_solver.py --device cuda:0 --motion walk --batches 1 16 64 --frames 60 \\
+        --peers vbd style3d --out bench.json
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
 import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -27,8 +41,6 @@ REPO = Path(__file__).resolve().parents[1]
 def commit() -> str:
     """The git commit measured; the device machine gets a copy of the tree without .git, so the
     caller passes it in SIMGEN_COMMIT there."""
-    import os
-
     if os.environ.get("SIMGEN_COMMIT"):
         return os.environ["SIMGEN_COMMIT"]
     try:
@@ -38,55 +50,134 @@ def commit() -> str:
         return "unknown"
 
 
-def run_batch(garment, body, n: int, *, device: str, frames: int, substeps: int, fps: float,
-              newton_iterations: int, cg_iterations: int) -> dict:
-    from simgen.sim import ClothModel, ImplicitSolver, SolverConfig
-    from simgen.sim.collider import BodyCollider
+def used_memory_mb(device) -> float | None:
+    d = wp.get_device(device)
+    if not d.is_cuda:
+        return None
+    return (d.total_memory - d.free_memory) / 2**20
 
+
+def shape_batch(n: int, num_betas: int, seed: int = 0) -> np.ndarray:
+    """(n, 4) betas: row 0 zero, the others uniform in [-2, 2] (the thesis-tshirt range)."""
+    rng = np.random.default_rng(seed)
+    b = rng.uniform(-2.0, 2.0, size=(n, min(4, num_betas)))
+    b[0] = 0.0
+    return b
+
+
+def run_motion(garment, body, motion: str, n: int, *, device: str, frames: int, substeps: int,
+               cuda_graph: bool) -> dict:
+    from simgen.sim import SimulationConfig, SimulationFailure, SimulationJob, simulate_batch
+
+    betas = shape_batch(n, body.num_betas)
+    jobs = [SimulationJob(motion, betas=betas[i], frames=frames, key=str(i)) for i in range(n)]
+    cfg = SimulationConfig(substeps=substeps, device=device, cuda_graph=cuda_graph)
+    memory = {"before": used_memory_mb(device), "built": None}
+
+    def on_frame(done, total, phase):
+        if done == 1:
+            memory["built"] = used_memory_mb(device)
+
+    t0 = time.perf_counter()
+    results = simulate_batch(garment, body, jobs, cfg, progress=on_frame)
+    wall = time.perf_counter() - t0
+    ok = [r for r in results if not isinstance(r, SimulationFailure)]
+    r0 = ok[0]
+    step = r0.stats["step_time"][1:]                       # animated frames that took steps
+    median = float(np.median(step)) * 1e3
+    per_substep = lambda key: float(np.mean(r0.stats[key][1:])) / substeps
+    protocol_frames = len(r0.protocol_positions)
+    row = {
+        "mode": "motion", "motion": motion, "instances": n, "frames": frames, "substeps": substeps,
+        "cuda_graph": bool(cuda_graph and wp.get_device(device).is_cuda),
+        "ms_per_frame_median": median,
+        "ms_per_frame_p90": float(np.percentile(step, 90)) * 1e3,
+        "cloth_frames_per_s": n * 1e3 / median,
+        "wall_ms_per_frame_with_stats": float(np.median(r0.stats["wall_time"][1:])) * 1e3,
+        "total_wall_s": wall, "protocol_frames": protocol_frames,
+        "newton_iterations_per_substep": per_substep("newton_iterations"),
+        "cg_iterations_per_substep": per_substep("cg_iterations"),
+        "failed_instances": len(results) - len(ok),
+        "finite": bool(all(np.all(np.isfinite(r.positions)) for r in ok)),
+        "max_depth_regular_mm": 1e3 * max(float(r.stats["max_depth_regular"].max()) for r in ok),
+        "max_inside_regular": max(int((r.stats["inside_count"] - r.stats["self_intersection_count"]).max())
+                                  for r in ok),
+        "retries": int(sum(r.metadata["retries"] for r in ok)),
+    }
+    if memory["built"] is not None and memory["before"] is not None:
+        row["gpu_memory_mb"] = memory["built"] - memory["before"]
+        row["gpu_memory_mb_per_instance"] = row["gpu_memory_mb"] / n
+    return row
+
+
+def run_static(garment, body, n: int, *, device: str, frames: int, substeps: int, fps: float,
+               warmup: int = 2) -> dict:
+    from simgen.sim import BodyCollider, ClothModel, ImplicitSolver, SolverConfig
+
+    before = used_memory_mb(device)
     model = ClothModel.concatenate([ClothModel.from_garment(garment, device=device)] * n)
     collider = BodyCollider.from_static(body.v_template, body.faces, num_instances=n, device=device)
-    config = SolverConfig(newton_iterations=newton_iterations, cg_iterations=cg_iterations)
-    solver = ImplicitSolver(model, config)
-    solver.load()
-    s0, s1 = model.state(), model.state()
+    solver = ImplicitSolver(model, SolverConfig(projection_offset=2.0e-4))
+    state = model.state()
     dt = 1.0 / (fps * substeps)
-    frame_ms = []
-    for f in range(frames + 2):  # two warm-up frames
+    use_graph = wp.get_device(device).is_cuda
+
+    def frame(deferred: bool):
+        if deferred:
+            solver.clear_deferred_guard()
+        for _ in range(substeps):
+            solver.step(state, state, collider, dt, deferred_guard=deferred)
+
+    frame(False)                                          # loads kernels, takes the first contacts
+    graph = None
+    if use_graph:
+        with wp.ScopedCapture(device=device, force_module_load=False) as capture:
+            frame(True)
+        graph = capture.graph
+    built = used_memory_mb(device)
+    times = []
+    for f in range(frames + warmup):
         wp.synchronize_device(device)
         t0 = time.perf_counter()
-        for _ in range(substeps):
-            solver.step(s0, s1, collider, dt)
-            s0, s1 = s1, s0
+        if graph is not None:
+            wp.capture_launch(graph)
+        else:
+            frame(False)
         wp.synchronize_device(device)
-        if f >= 2:
-            frame_ms.append(1e3 * (time.perf_counter() - t0))
-    stats = solver.stats
-    x = s0.positions.numpy()
-    median = float(np.median(frame_ms))
-    return {
-        "instances": n,
-        "vertices_total": int(model.vertex_count) if hasattr(model, "vertex_count") else int(len(x)),
-        "ms_per_frame_median": median,
-        "cloth_frames_per_s": n * 1e3 / median,
-        "cg_per_newton": stats.get("cg_per_newton"),
-        "retries": stats.get("retries"),
-        "max_penetration_m": stats.get("max_penetration"),
+        if f >= warmup:
+            times.append(time.perf_counter() - t0)
+    x = state.positions.numpy()
+    depth, share = collider.penetration(model, state.positions)
+    median = float(np.median(times)) * 1e3
+    st = solver.stats
+    row = {
+        "mode": "static", "instances": n, "frames": frames, "substeps": substeps, "cuda_graph": graph is not None,
+        "ms_per_frame_median": median, "cloth_frames_per_s": n * 1e3 / median,
+        "cg_per_newton": st["cg_per_newton"],
+        "guard_failures": int(solver.deferred_bad.numpy().astype(bool).sum()) if graph is not None else st["retries"],
         "finite": bool(np.all(np.isfinite(x))),
-        "gpu_memory_mb": (wp.get_device(device).total_memory - wp.get_device(device).free_memory) / 2**20
-        if wp.get_device(device).is_cuda else None,
+        "max_inside_depth_mm": 1e3 * float(depth.max()),
+        "y_min": float(x[:, 1].min()),
     }
+    if before is not None:
+        row["gpu_memory_mb"] = built - before
+        row["gpu_memory_mb_per_instance"] = (built - before) / n
+    return row
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--device", default=None)
     parser.add_argument("--garment", default="tshirt")
+    parser.add_argument("--motion", default="walk")
     parser.add_argument("--batches", type=int, nargs="+", default=[1, 16, 64])
-    parser.add_argument("--frames", type=int, default=20)
+    parser.add_argument("--frames", type=int, default=60, help="animated (or static) frames timed")
     parser.add_argument("--substeps", type=int, default=10)
     parser.add_argument("--fps", type=float, default=30.0)
-    parser.add_argument("--newton-iterations", type=int, default=1)
-    parser.add_argument("--cg-iterations", type=int, default=50)
+    parser.add_argument("--modes", nargs="+", default=["motion", "static"], choices=["motion", "static"])
+    parser.add_argument("--no-graph", action="store_true", help="motion mode without CUDA graphs (for the profile)")
+    parser.add_argument("--peers", nargs="*", default=[], choices=["vbd", "style3d"])
+    parser.add_argument("--vbd-iterations", type=int, default=10)
     parser.add_argument("--out", type=Path, default=None)
     args = parser.parse_args()
 
@@ -96,30 +187,59 @@ def main() -> None:
     wp.config.quiet = True
     wp.init()
     device = args.device or str(wp.get_preferred_device())
+    dev = wp.get_device(device)
     body = load("open")
     garment = load_garment(args.garment, body=body)
     result = {
-        "benchmark": "solver_static_drape",
-        "device": wp.get_device(device).name if hasattr(wp.get_device(device), "name") else device,
+        "benchmark": "solver",
+        "device": dev.name if dev.is_cuda else platform.processor() or "cpu",
         "device_alias": device,
         "host": platform.node(),
         "commit": commit(),
         "warp": wp.__version__,
         "garment": {"name": garment.name, "vertices": garment.num_vertices, "triangles": garment.num_triangles},
         "body_vertices": body.num_vertices,
-        "substeps_per_frame": args.substeps,
-        "fps": args.fps,
-        "newton_iterations": args.newton_iterations,
-        "cg_iterations": args.cg_iterations,
-        "graph_capture": False,
-        "frames_timed": args.frames,
+        "substeps_per_frame": args.substeps, "fps": args.fps,
+        "self_contact": False,
         "runs": [],
     }
+
+    def emit(row):
+        result["runs"].append(row)
+        print(json.dumps(row), flush=True)
+
     for n in args.batches:
-        result["runs"].append(run_batch(garment, body, n, device=device, frames=args.frames, substeps=args.substeps,
-                                        fps=args.fps, newton_iterations=args.newton_iterations,
-                                        cg_iterations=args.cg_iterations))
-        print(json.dumps(result["runs"][-1]), flush=True)
+        if "motion" in args.modes:
+            emit(run_motion(garment, body, args.motion, n, device=device, frames=args.frames,
+                            substeps=args.substeps, cuda_graph=not args.no_graph))
+        if "static" in args.modes:
+            emit(run_static(garment, body, n, device=device, frames=args.frames, substeps=args.substeps,
+                            fps=args.fps))
+    if args.peers:
+        sys.path.insert(0, str(Path(__file__).resolve().parent))
+        from bench_newton_peer import run_newton_peer
+
+        for solver in args.peers:
+            for n in args.batches:
+                try:
+                    row = run_newton_peer(solver, garment.vertices, garment.faces, body.v_template, body.faces,
+                                          instances=n, frames=args.frames, substeps=args.substeps, fps=args.fps,
+                                          iterations=args.vbd_iterations, device=device)
+                except Exception as exc:  # a peer failing must not lose our own numbers
+                    row = {"error": f"{type(exc).__name__}: {exc}"}
+                emit({"mode": "peer", "peer": f"newton-{solver}", "instances": n, **row})
+    # Ratios: our static drape against each peer at the same instance count, and our motion run.
+    ours = {(r["mode"], r["instances"]): r for r in result["runs"] if r["mode"] in ("motion", "static")}
+    ratios = []
+    for r in result["runs"]:
+        if r["mode"] != "peer" or "cloth_frames_per_s" not in r:
+            continue
+        for mode in ("static", "motion"):
+            o = ours.get((mode, r["instances"]))
+            if o:
+                ratios.append({"ours": mode, "peer": r["peer"], "instances": r["instances"],
+                               "throughput_ratio": o["cloth_frames_per_s"] / r["cloth_frames_per_s"]})
+    result["ratios"] = ratios
     text = json.dumps(result, indent=2)
     print(text)
     if args.out is not None:

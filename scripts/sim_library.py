@@ -1,13 +1,15 @@
 """Simulate one garment on library motions and report per-motion quality (GPU machine friendly).
 
-For each motion: runs :func:`simgen.sim.simulate` (thesis start protocol, then the clip), saves
-OUT/GARMENT_MOTION.npz (positions float16 for viewing, faces, fps, motion name, summary)
-and prints one JSON line: frames, seconds per frame, NaN, vertices inside the body at output frames
+All motions run as one batch of :func:`simgen.sim.simulate_batch` (one instance per motion, the
+batch runs to the longest clip; thesis start protocol, then each clip), or one after another with
+``--sequential``. For each motion it saves OUT/GARMENT_MOTION.npz (positions, float16 for viewing or
+float32 with ``--float32`` for the physics report; faces, fps, motion name, summary) and prints one
+JSON line: frames, seconds per frame, NaN, vertices inside the body at output frames
 (self-intersections counted apart), retries, and membrane strain (largest principal stretch - 1 of
 every triangle against its template) mean and max. No USD or VTK is needed here; make USD/MP4 on
 the CPU machine with scripts/sim_render.py.
 
-    python scripts/sim_library.py --garment tshirt --motions walk run cmu_131_03_hop --out runs/ --device cuda:0
+    python scripts/sim_library.py --garment tshirt --motions all --out runs/ --device cuda:0
 """
 
 from __future__ import annotations
@@ -41,7 +43,9 @@ def principal_stretch(rest: np.ndarray, posed: np.ndarray, faces: np.ndarray) ->
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--garment", default="tshirt")
-    parser.add_argument("--motions", nargs="+", default=["walk"])
+    parser.add_argument("--motions", nargs="+", default=["walk"], help="library names, or 'all'")
+    parser.add_argument("--sequential", action="store_true", help="one simulate() per motion instead of one batch")
+    parser.add_argument("--float32", action="store_true", help="store positions as float32 (default float16)")
     parser.add_argument("--frames", type=int, default=None, help="first N frames of each clip")
     parser.add_argument("--device", default=None)
     parser.add_argument("--out", type=Path, required=True)
@@ -50,24 +54,41 @@ def main() -> None:
     from simgen.body import load
     from simgen.garment import load_garment
     from simgen.motion import load_motion
-    from simgen.sim import SimulationConfig, simulate
+    from simgen.motion.library import list_motions
+    from simgen.sim import SimulationConfig, SimulationFailure, SimulationJob, simulate, simulate_batch
 
     body = load("open")
     garment = load_garment(args.garment, body=body)
     args.out.mkdir(parents=True, exist_ok=True)
-    summary = []
-    for name in args.motions:
-        clip = load_motion(name)
-        config = SimulationConfig(record_body=True, device=args.device)
+    names = [m["name"] for m in list_motions()] if args.motions == ["all"] else args.motions
+    config = SimulationConfig(device=args.device)
+    runs = []
+    if args.sequential:
+        for name in names:
+            t0 = time.perf_counter()
+            result = simulate(garment, body, load_motion(name), None, config, frames=args.frames)
+            runs.append((name, result, time.perf_counter() - t0, 1))
+    else:
         t0 = time.perf_counter()
-        result = simulate(garment, body, clip, None, config, frames=args.frames)
+        results = simulate_batch(garment, body, [SimulationJob(n, frames=args.frames, key=n) for n in names], config)
         wall = time.perf_counter() - t0
+        runs = [(n, r, wall, len(names)) for n, r in zip(names, results)]
+    summary = []
+    for name, result, wall, batch in runs:
+        if isinstance(result, SimulationFailure):
+            row = {"garment": garment.name, "motion": name, "failed": result.message, "phase": result.phase,
+                   "frame": result.frame}
+            print(json.dumps(row), flush=True)
+            summary.append(row)
+            continue
         pos = result.positions.astype(np.float64)
         stretch = principal_stretch(garment.vertices, pos, garment.faces.astype(np.int64)) - 1.0
         row = {
             "garment": garment.name, "motion": name, "frames": result.num_frames,
-            "protocol_frames": int(len(result.protocol_positions)),
-            "seconds_per_frame": wall / (result.num_frames + len(result.protocol_positions)),
+            "protocol_frames": int(len(result.protocol_positions)), "batch_size": batch,
+            "batch_wall_s": wall,
+            "step_ms_per_batch_frame": 1e3 * float(np.median(result.stats["step_time"][1:])) if result.num_frames > 1
+            else None,
             "nan": bool(not np.all(np.isfinite(pos))),
             "max_inside_regular": int(np.max(result.stats["inside_count"] - result.stats["self_intersection_count"])),
             "max_depth_regular_mm": 1e3 * float(np.max(result.stats["max_depth_regular"])),
@@ -77,7 +98,8 @@ def main() -> None:
             "commit": os.environ.get("SIMGEN_COMMIT", "unknown"),
         }
         # The body is not stored (it would dominate the file); sim_render.py poses it again from the clip.
-        np.savez_compressed(args.out / f"{garment.name}_{name}.npz", positions=result.positions.astype(np.float16),
+        dtype = np.float32 if args.float32 else np.float16
+        np.savez_compressed(args.out / f"{garment.name}_{name}.npz", positions=result.positions.astype(dtype),
                             faces=result.faces, fps=result.fps, motion=name, summary=json.dumps(row))
         print(json.dumps(row), flush=True)
         summary.append(row)

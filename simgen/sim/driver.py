@@ -65,6 +65,7 @@ FRAME_STAT_KEYS = (
     "unresolved",                 # steps still failing the guard after every retry (finite)
     "newton_iterations",          # Newton iterations over the frame's substeps
     "cg_iterations",              # PCG iterations over the frame's substeps
+    "step_time",                  # [s] the frame's stepping (posing, refits, solver), synchronised
     "wall_time",                  # [s] host wall time of the frame, statistics included
 )
 
@@ -610,8 +611,14 @@ def simulate_batch(garment, body, jobs, config: SimulationConfig | None = None, 
             reshape = body.num_betas > 0 and not np.all(bt == current_betas[None])
             if reshape:
                 betas_dev.assign(np.ascontiguousarray(bt, dtype=np.float32))
+            wp.synchronize_device(device)
+            t_step = time.perf_counter()
             run_frame(reshape, phase, k, first=(done == 0))
+            wp.synchronize_device(device)
+            step_time = time.perf_counter() - t_step
             current_betas = np.array(bt[-1])
+        else:
+            step_time = 0.0
         rows = stats_probe.measure(state.positions)
         st = solver.stats
         per = solver.instance_stats
@@ -624,7 +631,7 @@ def simulate_batch(garment, body, jobs, config: SimulationConfig | None = None, 
             row = rows[i]
             row.update(depth_before_projection=float(per["max_penetration"][i]), retries=int(per["retries"][i]),
                        unresolved=int(per["unresolved"][i]), newton_iterations=st["newton_iterations"],
-                       cg_iterations=st["cg_iterations"], wall_time=wall)
+                       cg_iterations=st["cg_iterations"], step_time=step_time, wall_time=wall)
             xi = x[starts[i]:starts[i + 1]]
             if phase == "animate":
                 if k < num_out[i]:
