@@ -1,0 +1,133 @@
+"""Time dataset generation and project the thesis's dataset size; prints (and saves) JSON.
+
+    python scripts/dataset_bench.py                                   # the `tiny` preset on the CPU
+    python scripts/dataset_bench.py --spec thesis-tshirt --out /tmp/tt --time-budget 480 --json tt.json
+
+A fresh store is generated (or an existing one resumed with --out): wall time, cloth-frames/s (every
+simulated frame: protocol relax/ramp/rest + clip frames) and output frames/s (stored frames only),
+then two projections for the thesis's dataset of 120,989 output frames (sec. 4.3.1; ARCSim needed
+about 180 h): ``projected_thesis_s_frames_only`` = 120,989 / cloth-frames/s (no protocol), and
+``projected_thesis_s`` = the same times the protocol overhead of the `thesis-tshirt` plan (cloth-
+frames / output frames of that plan: 17 fits and 340 sequences, each with the 60-frame protocol).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+THESIS_FRAMES = 120_989  # output frames of the thesis's T-shirt dataset (56 CMU sequences x 17 shapes)
+THESIS_ARCSIM_HOURS = 180
+
+
+def _commit() -> str:
+    root = Path(__file__).resolve().parents[1]
+    try:
+        head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=root, capture_output=True, text=True,
+                              check=True).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=root,
+                               capture_output=True, text=True).stdout.strip()
+        return head + ("+dirty" if dirty else "")
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+
+
+def _device(name: str) -> dict:
+    import warp as wp
+
+    info = {"warp_device": name, "warp": wp.__version__, "python": platform.python_version(),
+            "cpus": os.cpu_count(), "load_average_1min_before": os.getloadavg()[0]}
+    try:
+        with open("/proc/cpuinfo") as fh:
+            info["cpu"] = next(line.split(":", 1)[1].strip() for line in fh if line.startswith("model name"))
+    except (OSError, StopIteration):
+        info["cpu"] = platform.processor()
+    if name.startswith("cuda"):
+        info["gpu"] = wp.get_device(name).name
+    return info
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--spec", default="tiny", help="preset name or TOML spec (default: tiny)")
+    p.add_argument("--out", help="store folder (default: a temporary folder, removed afterwards)")
+    p.add_argument("--device", help="override the spec's device (cpu, cuda, cuda:N)")
+    p.add_argument("--max-sequences", type=int)
+    p.add_argument("--time-budget", type=float, help="seconds")
+    p.add_argument("--batch-size", type=int)
+    p.add_argument("--json", help="also write the JSON to this file")
+    a = p.parse_args(argv)
+
+    from simgen.dataset import generate_dataset, load_spec
+    from simgen.dataset._cli import plan_summary
+    from simgen.dataset.execute import quiet_warp
+
+    quiet_warp()
+    spec = load_spec(a.spec).with_overrides(device=a.device, batch_size=a.batch_size)
+    device = spec.resolved_device()
+    thesis_plan = plan_summary(load_spec("thesis-tshirt"))[0]
+    overhead = thesis_plan["cloth_frames"] / thesis_plan["output_frames"]
+    info = _device(device)
+    tmp = None
+    out = a.out
+    if out is None:
+        tmp = tempfile.mkdtemp(prefix="simgen-bench-")
+        out = str(Path(tmp) / "store")
+    try:
+        import simgen.sim as sim
+
+        t0 = time.perf_counter()
+        reports = generate_dataset(spec, out, max_sequences=a.max_sequences, time_budget=a.time_budget)
+        wall = time.perf_counter() - t0
+        r = reports[0]
+        from simgen.dataset import open_dataset
+
+        ds = open_dataset(r.path)
+        out_frames = sum(ds.sequence_info(s)["frames"] for s in ds.sequence_ids())
+        rate = r.cloth_frames_per_second
+        result = {
+            "benchmark": "dataset_generate",
+            "date": time.strftime("%Y-%m-%d"),
+            "device": info,
+            "commit": _commit(),
+            "spec": spec.name,
+            "batched_solver": hasattr(sim, "simulate_batch"),
+            "sizes": {"garment": ds.garment_name, "vertices": ds.attrs["garment"]["vertices"],
+                      "triangles": ds.attrs["garment"]["triangles"], "shapes": len(spec.shapes()),
+                      "motions": len(spec.motions()), "planned_sequences": r.planned_sequences,
+                      "sequences_done": len(ds.sequence_ids()), "sequences_written_now": r.written,
+                      "substeps": spec.substeps, "batch_size": spec.batch_size,
+                      "protocol_frames": spec.protocol_frames()},
+            "cloth_frames": r.cloth_frames,
+            "wall_s": r.wall,
+            "run_wall_s": wall,
+            "cloth_frames_per_s": rate,
+            "output_frames_stored": out_frames,
+            "stopped": r.stopped,
+            "thesis_tshirt_plan": thesis_plan,
+            "protocol_overhead_thesis_tshirt": overhead,
+            "projected_thesis_s_frames_only": THESIS_FRAMES / rate if rate else None,
+            "projected_thesis_s": THESIS_FRAMES * overhead / rate if rate else None,
+            "projected_thesis_tshirt_s": thesis_plan["cloth_frames"] / rate if rate else None,
+            "thesis_arcsim_s": THESIS_ARCSIM_HOURS * 3600,
+        }
+    finally:
+        if tmp is not None:
+            shutil.rmtree(tmp, ignore_errors=True)
+    text = json.dumps(result, indent=2)
+    print(text)
+    if a.json:
+        Path(a.json).write_text(text + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

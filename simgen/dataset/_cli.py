@@ -1,0 +1,231 @@
+"""The bodies of ``simgen dataset generate|check|info`` (kept here so cli.py stays a thin layer).
+
+Also used by ``python -m simgen.dataset`` (plain argparse, no typer/rich needed: the device machine).
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from pathlib import Path
+
+from simgen.errors import InputError
+
+__all__ = ["run_generate", "run_check", "run_info", "plan_summary"]
+
+
+def _plain_progress(label: str, total: int, every: float = 10.0):
+    """A progress printer for machines without rich: one stderr line every ``every`` seconds."""
+    t0 = time.perf_counter()
+    last = [0.0]
+
+    class _Ctx:
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            return False
+
+    def update(done: int, total_: int | None = None) -> None:
+        now = time.perf_counter()
+        tot = total_ or total
+        if now - last[0] >= every or done >= tot:
+            last[0] = now
+            el = now - t0
+            eta = f"{el / done * (tot - done):.0f} s" if done else "?"
+            print(f"{label}: {done}/{tot} ({el:.0f} s, ETA {eta})", file=sys.stderr, flush=True)
+
+    return _Ctx(), update
+
+
+def plan_summary(spec) -> list[dict]:
+    """Per garment: shapes, motions, jobs and cloth-frames (protocol included) of the full plan."""
+    from simgen.dataset.execute import _load_body, job_cloth_frames
+    from simgen.dataset.generate import plan_jobs
+
+    body = _load_body(spec.body)
+    rows = []
+    for g in spec.garments:
+        jobs = plan_jobs(spec, g, body)
+        seqs = [j for j in jobs if j.kind == "sequence"]
+        rows.append({"garment": g, "shapes": len(spec.shapes()), "motions": len({j.motion for j in seqs}),
+                     "sequences": len(seqs), "output_frames": sum(j.frames for j in seqs),
+                     "test_sequences": sum(j.split == "test" for j in seqs),
+                     "cloth_frames": job_cloth_frames(spec, jobs)})
+    return rows
+
+
+def run_generate(spec_arg, *, out=None, ray=None, max_sequences=None, time_budget=None, report=None, dry_run=False,
+                 console=None, progress_factory=None, overrides=None) -> int:
+    """Generate; print a summary; return the exit code (0 done or stopped by a limit, 1 failed jobs)."""
+    from simgen.dataset.generate import GenerationError, generate_dataset
+    from simgen.dataset.spec import load_spec
+
+    spec = load_spec(spec_arg).with_overrides(**(overrides or {}))
+    if dry_run:
+        rows = plan_summary(spec)
+        for r in rows:
+            r["store"] = spec.output_path(r["garment"], out)
+        print(json.dumps(rows, indent=2))
+        return 0
+    make = progress_factory or _plain_progress
+    bar, update = make(f"dataset {spec.name}", 1)
+    log = (lambda msg: console.print(msg, highlight=False, markup=False)) if console is not None else \
+        (lambda msg: print(msg, file=sys.stderr))
+    t0 = time.perf_counter()
+    try:
+        with bar:
+            reports = generate_dataset(spec, out, ray=ray, max_sequences=max_sequences, time_budget=time_budget,
+                                       progress=update, log=log)
+    except GenerationError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    wall = time.perf_counter() - t0
+    code = 0
+    out_reports = []
+    for r in reports:
+        d = r.to_dict()
+        d["run_wall"] = wall
+        out_reports.append(d)
+        state = "complete" if r.pending == 0 else f"{r.pending} sequences pending (rerun to continue)"
+        print(f"{r.path}: {r.garment}: {r.written} sequences written now, "
+              f"{r.planned_sequences - r.pending} of {r.planned_sequences} done, {state}; "
+              f"{r.cloth_frames} cloth-frames in {r.wall:.1f} s ({r.cloth_frames_per_second:.1f}/s)"
+              + (f"; stopped: {r.stopped}" if r.stopped else ""))
+        for key, msg in r.failed.items():
+            print(f"failed: {key}: {msg}", file=sys.stderr)
+            code = 1
+    if report is not None:
+        from simgen._fileio import atomic_write_bytes
+
+        Path(report).parent.mkdir(parents=True, exist_ok=True)
+        atomic_write_bytes(report, json.dumps(out_reports, indent=2).encode())
+    return code
+
+
+def run_check(path, *, stride=1, max_depth=1e-3, max_strain=1.0, require_complete=False, as_json=False,
+              progress_factory=None, device="auto") -> int:
+    from simgen.dataset.check import check_dataset
+
+    make = progress_factory or _plain_progress
+    bar, update = make("checking", 1)
+    with bar:
+        rep = check_dataset(path, stride=stride, max_depth=max_depth, max_strain=max_strain,
+                            require_complete=require_complete, progress=update, device=device)
+    print(json.dumps(rep.to_dict(), indent=2) if as_json else rep.format())
+    return 0 if rep.passed else 1
+
+
+def run_info(path, *, as_json=False) -> None:
+    from simgen.dataset.reader import open_dataset
+
+    ds = open_dataset(path)
+    rows = []
+    for sid in ds.sequence_ids():
+        e = ds.sequence_info(sid)
+        a = ds.loc.node_attrs(f"sequences/{sid}") or {}
+        st = a.get("stats", {})
+        rows.append({"id": sid, "motion": e.get("motion"), "shape": e.get("shape_id"), "split": e.get("split"),
+                     "frames": e.get("frames"), "max_penetration_mm": _mm(st.get("max_penetration")),
+                     "strain_mean": st.get("strain_mean"), "strain_max": st.get("strain_max"),
+                     "retries": st.get("solver_retries"), "attempts": st.get("attempts"),
+                     "wall_time": st.get("wall_time")})
+    at = ds.attrs
+    head = {"path": ds.path, "garment": at["garment"], "body": at["body"], "material": at["material"]["name"],
+            "fps": at["solver"]["fps"], "substeps": at["solver"]["substeps"],
+            "protocol": [at["solver"]["relax_frames"], at["solver"]["ramp_frames"], at["solver"]["rest_frames"]],
+            "shapes": ds.shape_ids(), "template": ds.manifest["template"] is not None,
+            "sequences": len(rows), "frames": sum(r["frames"] or 0 for r in rows),
+            "failed": sorted(ds.manifest.get("failed", {})), "simgen_version": at.get("simgen_version")}
+    if as_json:
+        print(json.dumps({"dataset": head, "sequences": rows}, indent=2))
+        return
+    from rich.console import Console
+    from rich.table import Table
+
+    t = Table(title=f"{ds.path}", show_header=False)
+    t.add_column("field")
+    t.add_column("value")
+    g = at["garment"]
+    t.add_row("garment", f"{g['name']} ({g['vertices']:,} vertices, {g['triangles']:,} triangles)")
+    t.add_row("body", f"{at['body']['id']} ({at['body'].get('num_betas')} shape components)")
+    t.add_row("material", head["material"])
+    t.add_row("solver", f"{head['fps']:g} fps x {head['substeps']} substeps; protocol relax/ramp/rest "
+                        f"{'/'.join(map(str, head['protocol']))} frames")
+    t.add_row("shapes (fits)", ", ".join(head["shapes"]) or "-")
+    t.add_row("sequences", f"{head['sequences']} ({sum(r['split'] == 'test' for r in rows)} test), "
+                           f"{head['frames']:,} frames")
+    if head["failed"]:
+        t.add_row("failed", ", ".join(head["failed"]))
+    c = Console()
+    c.print(t)
+    s = Table(title=f"{len(rows)} sequences (id = motion__shape)")
+    s.add_column("id", overflow="fold", min_width=min(max((len(r["id"]) for r in rows), default=2), 40))
+    for col in ("split", "frames", "max pen. [mm]", "strain mean", "strain max", "retries", "wall [s]"):
+        s.add_column(col, justify="right")
+    for r in rows:
+        s.add_row(r["id"], str(r["split"]), str(r["frames"]), _fmt(r["max_penetration_mm"], ".2f"),
+                  _fmt(r["strain_mean"], ".3f"), _fmt(r["strain_max"], ".3f"), str(r["retries"]),
+                  _fmt(r["wall_time"], ".1f"))
+    c.print(s)
+
+
+def _mm(v):
+    return None if v is None else 1e3 * float(v)
+
+
+def _fmt(v, f):
+    return "-" if v is None else format(v, f)
+
+
+def main(argv=None) -> int:
+    """``python -m simgen.dataset generate|check|plan ...`` without typer/rich (for the device machine)."""
+    import argparse
+
+    p = argparse.ArgumentParser(prog="python -m simgen.dataset", description=__doc__)
+    sub = p.add_subparsers(dest="cmd", required=True)
+    g = sub.add_parser("generate", help="generate or resume a dataset")
+    g.add_argument("spec")
+    g.add_argument("--out")
+    g.add_argument("--device")
+    g.add_argument("--batch-size", type=int)
+    g.add_argument("--substeps", type=int)
+    g.add_argument("--max-frames", type=int)
+    g.add_argument("--motions")
+    g.add_argument("--shapes")
+    g.add_argument("--max-sequences", type=int)
+    g.add_argument("--time-budget", type=float)
+    g.add_argument("--report")
+    g.add_argument("--dry-run", action="store_true")
+    k = sub.add_parser("pack", help="a few sequences as one small float16 .npz (view with `simgen dataset export`)")
+    k.add_argument("path")
+    k.add_argument("sequences", nargs="+")
+    k.add_argument("--out", required=True)
+    c = sub.add_parser("check", help="check a dataset store")
+    c.add_argument("path")
+    c.add_argument("--stride", type=int, default=1)
+    c.add_argument("--max-depth", type=float, default=1e-3)
+    c.add_argument("--max-strain", type=float, default=1.0)
+    c.add_argument("--require-complete", action="store_true")
+    c.add_argument("--json", action="store_true")
+    c.add_argument("--device", default="auto")
+    a = p.parse_args(argv)
+    try:
+        if a.cmd == "generate":
+            return run_generate(a.spec, out=a.out, max_sequences=a.max_sequences, time_budget=a.time_budget,
+                                report=a.report, dry_run=a.dry_run,
+                                overrides=dict(device=a.device, batch_size=a.batch_size, substeps=a.substeps,
+                                               max_frames=a.max_frames,
+                                               motions=a.motions.split(",") if a.motions else None,
+                                               shapes=a.shapes.split(",") if a.shapes else None))
+        if a.cmd == "pack":
+            from simgen.dataset.export import pack_sequences
+
+            print(pack_sequences(a.path, a.sequences, a.out))
+            return 0
+        return run_check(a.path, stride=a.stride, max_depth=a.max_depth, max_strain=a.max_strain,
+                         require_complete=a.require_complete, as_json=a.json, device=a.device)
+    except InputError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2

@@ -1,0 +1,282 @@
+"""check_dataset(): audit a store. Every finding is a *problem* (the check fails) or a *warning*.
+
+Problems:
+- manifest and store disagree: a manifest entry whose node is missing or uncommitted, a checksum
+  that does not match the node's arrays (recomputed here), a committed node the manifest lacks;
+- missing frames: per-frame arrays of different lengths, fewer frames than the manifest/attrs
+  say, or unwritten Zarr chunks;
+- NaN or inf anywhere;
+- cloth inside the body: the body is re-posed here from the stored poses, trans and betas (the
+  numpy forward pass) and every checked cloth vertex more than ``max_depth`` inside it (winding-
+  number sign) counts, except at body self-intersections (the closest body point moved 2 mm
+  outward is still inside: armpits, crotch), which the solver cannot resolve;
+- strain outliers: a triangle whose largest principal stretch exceeds 1 + ``max_strain`` against
+  the cloth's rest shape (default 1.0: twice its rest length; healthy frames of the coarse
+  tshirt_1k reach 40% in single triangles at the shoulders, a blown-up or tangled frame goes far
+  beyond);
+- fits whose stored displacement is not smooth(S_c) - T_c;
+- jobs recorded as failed in the manifest.
+
+Warnings: planned sequences not generated yet (a problem with ``require_complete``), leftovers of an
+interrupted run (removed by the next ``generate``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from simgen.dataset.storage import STAGING, arrays_checksum
+from simgen.dataset.store import node_arrays
+
+__all__ = ["CheckReport", "check_dataset", "DEFAULT_MAX_DEPTH", "DEFAULT_MAX_STRAIN"]
+
+DEFAULT_MAX_DEPTH = 1.0e-3     # [m] the solver's contract: no vertex more than 1 mm inside (self-intersections apart)
+_POSE_CHUNK = 16
+DEFAULT_MAX_STRAIN = 1.0       # [-] largest principal stretch - 1
+
+
+@dataclass
+class CheckReport:
+    """Findings of :func:`check_dataset`. passed: no problem."""
+
+    path: str
+    problems: list = field(default_factory=list)
+    warnings: list = field(default_factory=list)
+    sequences: int = 0
+    frames: int = 0
+    frames_checked_body: int = 0
+    max_depth: float = 0.0
+    max_strain: float = 0.0
+    planned: int | None = None
+
+    @property
+    def passed(self) -> bool:
+        return not self.problems
+
+    def problem(self, node: str, check: str, message: str) -> None:
+        self.problems.append({"node": node, "check": check, "message": message})
+
+    def warn(self, node: str, check: str, message: str) -> None:
+        self.warnings.append({"node": node, "check": check, "message": message})
+
+    def to_dict(self) -> dict:
+        return {"path": self.path, "passed": self.passed, "problems": self.problems, "warnings": self.warnings,
+                "sequences": self.sequences, "frames": self.frames, "frames_checked_body": self.frames_checked_body,
+                "max_depth": self.max_depth, "max_strain": self.max_strain, "planned": self.planned}
+
+    def format(self) -> str:
+        lines = [f"{self.path}: {self.sequences} sequences, {self.frames} frames"
+                 + (f" of {self.planned} planned sequences" if self.planned is not None else "")
+                 + f"; deepest regular vertex inside the body {1e3 * self.max_depth:.2f} mm over "
+                   f"{self.frames_checked_body} frames; largest strain {100 * self.max_strain:.1f}%"]
+        for p in self.problems:
+            lines.append(f"PROBLEM {p['node']} [{p['check']}]: {p['message']}")
+        for w in self.warnings:
+            lines.append(f"warning {w['node']} [{w['check']}]: {w['message']}")
+        lines.append("passed" if self.passed else f"FAILED: {len(self.problems)} problems")
+        return "\n".join(lines)
+
+
+def check_dataset(path, *, body=None, stride: int = 1, max_depth: float = DEFAULT_MAX_DEPTH,
+                  max_strain: float = DEFAULT_MAX_STRAIN, require_complete: bool = False, progress=None,
+                  device: str = "auto") -> CheckReport:
+    """Check a store (see the module doc). Returns a :class:`CheckReport`.
+
+    stride: check the body penetration and strain on every stride-th frame (NaN, missing frames and
+    checksums always cover every frame); body: BodyModel or source to re-pose with (default: the
+    store's, verified by hash); progress(done, total) per sequence; device: Warp device of the
+    surface queries ("auto": CUDA when present, else the CPU).
+    """
+    import zarr
+
+    from simgen.dataset.execute import quiet_warp
+    from simgen.dataset.groundtruth import SmoothingParams, smooth_garment
+    from simgen.dataset.quality import body_penetration, triangle_rest_inverse, triangle_strain
+    from simgen.dataset.reader import open_dataset
+    from simgen.errors import InputError
+
+    if isinstance(stride, bool) or not isinstance(stride, int) or stride < 1:
+        raise InputError(f"--stride must be an integer >= 1, got {stride!r}")
+    quiet_warp()
+    if device == "auto":
+        import warp as wp
+
+        device = "cuda:0" if wp.get_cuda_device_count() > 0 else "cpu"
+    ds = open_dataset(path)
+    rep = CheckReport(path=ds.path)
+    loc, m = ds.loc, ds.manifest
+    bm = ds.load_body(body)
+    root = zarr.open_group(loc.url(), mode="r")
+
+    # ---- manifest vs store
+    def verify(rel: str, entry: dict | None, node: str) -> bool:
+        commit = loc.committed(rel)
+        if commit is None:
+            rep.problem(node, "manifest", f"listed in the manifest but {rel} is missing or was never committed")
+            return False
+        if entry is not None and entry.get("checksum") != commit["checksum"]:
+            rep.problem(node, "manifest", "the manifest's checksum differs from the node's commit record")
+            return False
+        try:
+            actual = arrays_checksum(node_arrays(loc, rel))
+        except Exception as exc:  # noqa: BLE001 - unreadable data is a finding, not a crash
+            rep.problem(node, "manifest", f"its arrays cannot be read ({type(exc).__name__}: {exc})")
+            return False
+        if actual != commit["checksum"]:
+            rep.problem(node, "checksum", "its arrays do not match the checksum committed with them "
+                                          "(changed or damaged after writing)")
+            return False
+        return True
+
+    template_ok = False
+    if m["template"] is not None:
+        template_ok = verify("template", m["template"], "template")
+    elif m["fits"] or m["sequences"]:
+        rep.problem("template", "manifest", "fits or sequences exist but the template relaxation does not")
+    for kind, folder in (("fits", "fit"), ("sequences", "sequences")):
+        listed = set(m[kind])
+        for name in loc.listdir(folder):
+            if name == "zarr.json":
+                continue
+            if loc.committed(f"{folder}/{name}") is None:
+                rep.warn(f"{folder}/{name}", "leftover", "an uncommitted node of an interrupted run (the next "
+                                                          "generate removes it)")
+            elif name not in listed:
+                rep.problem(f"{folder}/{name}", "manifest", "committed in the store but missing from the manifest "
+                                                            "(rerun generate to adopt it)")
+    if loc.is_local and loc.listdir(STAGING):
+        rep.warn(".staging", "leftover", f"{len(loc.listdir(STAGING))} half-written nodes of an interrupted run "
+                                         f"(the next generate removes them)")
+    for key, info in sorted(m.get("failed", {}).items()):
+        rep.problem(key, "failed", f"the job failed after {info.get('attempts')} attempts: {info.get('message')}")
+
+    tpl = ds.template if template_ok else None
+    faces = tpl["faces"].astype(np.int64) if tpl is not None else None
+    rest_inv = triangle_rest_inverse(tpl["garment_template"], faces) if tpl is not None else None
+    V = len(tpl["vertices"]) if tpl is not None else None
+
+    # ---- fits
+    if tpl is not None:
+        params = SmoothingParams.from_dict(tpl["smoothing"])
+        for sid in sorted(m["fits"]):
+            node = f"fit/{sid}"
+            if not verify(node, m["fits"][sid], node):
+                continue
+            fit = ds.fit(sid)
+            if not all(np.all(np.isfinite(fit[k])) for k in ("betas", "vertices", "fit_displacement")):
+                rep.problem(node, "nan", "contains NaN or inf")
+                continue
+            expect = smooth_garment(fit["vertices"].astype(np.float64), faces, params) - tpl["smoothed"]
+            err = float(np.max(np.abs(expect - fit["fit_displacement"])))
+            if err > 1e-5:
+                rep.problem(node, "fit", f"fit_displacement differs from smooth(S_c) - T_c by {1e3 * err:.3f} mm")
+
+    # ---- sequences
+    ids = sorted(m["sequences"])
+    for n, sid in enumerate(ids):
+        node = f"sequences/{sid}"
+        if progress is not None:
+            progress(n, len(ids))
+        if not verify(node, m["sequences"][sid], node):
+            continue
+        g = root[node]
+        entry = m["sequences"][sid]
+        attrs = g.attrs.asdict()
+        rep.sequences += 1
+        arrays = {k: g[k] for k in ("garment_vertices", "poses", "trans", "betas") if k in g}
+        if len(arrays) < 4:
+            lacking = sorted({"garment_vertices", "poses", "trans", "betas"} - set(arrays))
+            rep.problem(node, "frames", f"lacks arrays {lacking}")
+            continue
+        lengths = {k: a.shape[0] for k, a in arrays.items()}
+        expected = attrs.get("frames", entry.get("frames"))
+        if len(set(lengths.values())) != 1 or expected not in lengths.values():
+            rep.problem(node, "frames", f"frame counts disagree: {lengths}, attrs/manifest say {expected}")
+            continue
+        missing = [k for k, a in arrays.items() if a.nchunks_initialized < a.nchunks]
+        if missing:
+            rep.problem(node, "frames", f"unwritten chunks (missing frames) in {', '.join(missing)}")
+            continue
+        x = arrays["garment_vertices"][...]
+        T = x.shape[0]
+        rep.frames += T
+        if V is not None and x.shape[1:] != (V, 3):
+            rep.problem(node, "frames", f"garment_vertices has shape {x.shape}, the template has {V} vertices")
+            continue
+        bad = [k for k, a in arrays.items() if not np.all(np.isfinite(a[...]))]
+        if "rest_garment_vertices" in g and not np.all(np.isfinite(g["rest_garment_vertices"][...])):
+            bad.append("rest_garment_vertices")
+        if bad:
+            first = int(np.nonzero(~np.all(np.isfinite(x.reshape(T, -1)), axis=1))[0][0]) if "garment_vertices" in bad \
+                else None
+            rep.problem(node, "nan", f"NaN or inf in {', '.join(bad)}" + (f" (first at frame {first})"
+                                                                           if first is not None else ""))
+            continue
+        frames = np.arange(0, T, stride)
+        poses, trans, betas = (arrays[k][...] for k in ("poses", "trans", "betas"))
+        worst = (0.0, -1, 0)
+        for i, k in enumerate(frames):
+            if i % _POSE_CHUNK == 0:  # the forward pass holds (N, Vb, 4, 4) blended transforms: chunk it
+                sel = frames[i:i + _POSE_CHUNK]
+                posed = bm.forward(betas[sel], poses[sel], trans[sel]).vertices
+            depth, self_hit = body_penetration(x[k], posed[i % _POSE_CHUNK], bm.faces, device=device)
+            regular = np.where(self_hit, 0.0, depth)
+            deep = int(np.sum(regular > max_depth))
+            d = float(regular.max(initial=0.0))
+            rep.max_depth = max(rep.max_depth, d)
+            if d > worst[0]:
+                worst = (d, int(k), deep)
+        rep.frames_checked_body += len(frames)
+        if worst[0] > max_depth:
+            rep.problem(node, "inside-body", f"{worst[2]} cloth vertices more than {1e3 * max_depth:g} mm inside the "
+                                             f"body at frame {worst[1]} (deepest {1e3 * worst[0]:.2f} mm; "
+                                             f"self-intersections excluded)")
+        if rest_inv is not None:
+            s = triangle_strain(x[frames], faces, rest_inv)
+            smax = float(s.max())
+            rep.max_strain = max(rep.max_strain, smax)
+            if smax > max_strain:
+                t, f = np.unravel_index(int(np.argmax(s)), s.shape)
+                rep.problem(node, "strain", f"strain outlier: triangle {int(f)} stretched {100 * smax:.0f}% at frame "
+                                            f"{int(frames[t])} (limit {100 * max_strain:g}%)")
+    if progress is not None:
+        progress(len(ids), len(ids))
+
+    # ---- completeness against the plan recorded in the spec
+    spec = ds.attrs.get("spec") or {}
+    planned = _planned_sequences(spec)
+    if planned is not None:
+        rep.planned = len(planned)
+        missing = sorted(set(planned) - set(m["sequences"]))
+        if missing:
+            msg = (f"{len(missing)} of {len(planned)} planned sequences are not generated yet "
+                   f"(e.g. {', '.join(missing[:3])}); rerun generate to continue")
+            (rep.problem if require_complete else rep.warn)("sequences", "complete", msg)
+        extra = sorted(set(m["sequences"]) - set(planned))
+        if extra:
+            rep.warn("sequences", "complete", f"{len(extra)} sequences are not in the current spec's plan "
+                                              f"(e.g. {extra[0]})")
+    return rep
+
+
+def _planned_sequences(spec: dict) -> list[str] | None:
+    """Sequence ids the stored spec plans, or None when the motions cannot be listed here."""
+    from simgen.dataset.spec import DatasetSpec, ShapeSpec
+    from simgen.errors import InputError
+
+    try:
+        s = DatasetSpec(name=spec["name"], garments=list(spec["garments"]))
+        s.shapes_generator = "list"
+        s.shape_list = tuple(ShapeSpec(x["id"], tuple(x["betas"])) for x in spec["shapes"])
+        s.motion_library = tuple(spec.get("motion_library", ()))
+        s.motion_files = tuple(spec.get("motion_files", ()))
+        s.test_motions = tuple(spec.get("test_motions", ()))
+        s.train_motions = tuple(spec.get("train_motions", ()))
+        s.source = spec.get("source", "<store>")
+        s.base_dir = spec.get("base_dir", ".")
+        motions = s.motions()
+    except (KeyError, TypeError, InputError):
+        return None
+    return [f"{mo.id}__{sh.id}" for mo in motions for sh in s.shapes()]
