@@ -1,0 +1,286 @@
+"""Thesis ch. 4 on the GPU machine in one call: generate a T-shirt dataset subset, train the garment fit
+MLP and the wrinkle GRU, evaluate against LBS and linear regression, return metrics, plots and the
+small fit model -- everything inside one time budget (a device call lasts at most 10 minutes).
+
+Phases (each bounded; the store, the models and the training state stay in --work, so a second run
+on the same warm machine resumes generation and training instead of starting over):
+
+1. generate: ``simgen.dataset.generate_dataset`` on the thesis-tshirt preset, restricted to a motion
+   and shape subset and a frame cap, test motions first so that a budget cut still leaves held-out
+   motions; stops starting batches after --gen-budget seconds;
+2. train: the fit MLP (2000 epochs, thesis), then the wrinkle GRU (1500 units, TBPTT 90, batch 128)
+   until the training budget runs out (checkpointed every minute), then the linear baselines;
+3. evaluate: ``simgen.learn.evaluate_garment`` (per-frame errors, shape generalisation, vertices
+   inside the body, physics terms, ms/frame on the CPU and the GPU, model sizes).
+
+What comes back in --out (at most 8 files, each well under 16 MiB): metrics.json, summary.txt,
+the plots (if matplotlib is there; otherwise draw them on the CPU machine with ``--plots-from``),
+fit_model.tar (template/, fit/, split.json, both training logs, the wrinkle model's config without
+its ~110 MB of weights) and compare.npz (one held-out sequence: simulation, model, LBS and the body,
+float16, for USD on the CPU machine with ``--usd-from``). No usd-core or pyvista is imported here.
+
+    # on the device machine (after the warp install recipe of ../shared/gpu/README.md):
+    python scripts/train_thesis.py --out $OUT --work /root/thesis --device cuda
+    # back on the CPU machine:
+    python scripts/train_thesis.py --plots-from OUTDIR            # plots from metrics.json + logs
+    python scripts/train_thesis.py --usd-from OUTDIR/compare.npz --usd compare.usdc
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tarfile
+import time
+import traceback
+from pathlib import Path
+
+import numpy as np
+
+# Test motions first (the library's held-out clips), then training motions, so that a generation
+# cut by the time budget still holds held-out motions and several training motions.
+DEFAULT_MOTIONS = ["walk_fast", "dance", "lunge", "cmu_131_03_hop", "walk", "jumping_jacks", "squat", "arm_swings",
+                   "run", "side_step", "bend_and_reach", "torso_twist", "kick", "jump", "cmu_131_02_walk",
+                   "idle_sway", "turn_in_place", "arm_raises", "walk_curve", "cmu_131_01_walk_start_stop"]
+# The thesis's shape design on the first two components (the preset has four): zero and +-1, +-2.
+DEFAULT_SHAPES = ["zero", "b0m2", "b0m1", "b0p1", "b0p2", "b1m2", "b1m1", "b1p1", "b1p2"]
+
+
+def _log(msg: str) -> None:
+    print(f"[{time.strftime('%H:%M:%S')}] {msg}", flush=True)
+
+
+def _write_json(path: Path, obj) -> None:
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(json.dumps(obj, indent=1, default=str) + "\n")
+    tmp.replace(path)
+
+
+def _tar_fit_model(model_dir: Path, path: Path) -> None:
+    """The small model (everything but the wrinkle GRU's weights) as one tar file."""
+    with tarfile.open(path, "w") as tar:
+        for rel in ("split.json", "template/config.json", "template/model.pt", "fit/config.json", "fit/model.pt",
+                    "fit/log.csv", "wrinkle/config.json", "wrinkle/log.csv"):
+            p = model_dir / rel
+            if p.is_file():
+                tar.add(p, arcname=f"model/{rel}")
+
+
+def _compare_npz(model, data, split, path: Path, frames: int) -> dict:
+    """One held-out sequence (zero shape if there is one): simulation, model, LBS, body (float16)."""
+    import torch
+
+    from simgen.learn.garment_model import lbs_baseline
+
+    ids = split.test.get("held_out_motion") or split.test.get("held_out_both") or []
+    if not ids:
+        return {}
+    zero = [i for i in ids if data.sequences[i].shape_id == "zero"]
+    sid = sorted(zero or ids)[0]
+    s = data.sequences[sid]
+    n = min(frames, s.num_frames)
+    dev = model.device
+    b, p, t = (torch.as_tensor(x[:n], device=dev) for x in (s.betas, s.poses, s.trans))
+    with torch.no_grad():
+        pred = model.predict(b, p, t, s.fps)
+        lbs = lbs_baseline(model.template, b, pred.transforms)
+        body_v = model.body(b, p, t)[0]
+    arrays = {"ground_truth": s.vertices[:n].astype(np.float16), "ours": pred.vertices.cpu().numpy().astype(np.float16),
+              "lbs": lbs.cpu().numpy().astype(np.float16), "body": body_v.cpu().numpy().astype(np.float16),
+              "garment_faces": model.template.faces.cpu().numpy().astype(np.int32),
+              "body_faces": model.body.faces.cpu().numpy().astype(np.int32), "fps": np.float32(s.fps)}
+    np.savez_compressed(path, sequence=np.array(sid), **arrays)
+    return {"sequence": sid, "frames": n, "bytes": path.stat().st_size}
+
+
+def run(args) -> int:
+    t0 = time.monotonic()
+    deadline = t0 + args.total_budget
+    out, work = Path(args.out), Path(args.work)
+    out.mkdir(parents=True, exist_ok=True)
+    work.mkdir(parents=True, exist_ok=True)
+    report: dict = {"args": vars(args), "phases": {}, "commit": os.environ.get("SIMGEN_COMMIT", "unknown")}
+
+    def left() -> float:
+        return deadline - time.monotonic()
+
+    def phase(name: str, **info) -> None:
+        report["phases"][name] = {"seconds": round(time.monotonic() - phase.start, 2), **info}
+        phase.start = time.monotonic()
+        _write_json(out / "metrics.json", report)
+
+    phase.start = t0
+    try:
+        import torch
+
+        torch.backends.cuda.matmul.allow_tf32 = True  # the 1500 x 13k output layer; fp32 accumulate
+        torch.backends.cudnn.allow_tf32 = True
+        device = args.device if args.device != "cuda" else "cuda:0"
+        report["device"] = torch.cuda.get_device_name() if torch.cuda.is_available() else "cpu"
+        report["torch"] = torch.__version__
+
+        # ---------------------------------------------------------------- 1. generate
+        from simgen.dataset import generate_dataset, load_spec
+
+        spec = load_spec(args.spec).with_overrides(motions=args.motions, shapes=args.shapes,
+                                                   max_frames=args.max_frames, batch_size=args.gen_batch,
+                                                   substeps=args.substeps)
+        store = work / "dataset"
+        gen_budget = min(args.gen_budget, left() - args.min_train - args.eval_reserve)
+        if gen_budget > 5:
+            _log(f"generating into {store} for at most {gen_budget:.0f} s")
+            reports = generate_dataset(spec, out=str(store), time_budget=gen_budget, log=_log)
+            phase("generate", budget_s=round(gen_budget, 1), stores=[r.to_dict() for r in reports])
+        else:
+            phase("generate", skipped="no time left for generation; using what the store holds")
+
+        # ---------------------------------------------------------------- 2. train
+        from simgen.learn import (FitConfig, WrinkleConfig, fit_linear_baselines, load_garment_data, make_split,
+                                  train_fit, train_wrinkle)
+
+        data = load_garment_data(store, device=device)
+        split = make_split(data, args.split)
+        counts = {k: len(v) for k, v in split.test.items()}
+        frames = sum(data.sequences[i].num_frames for i in split.train_sequences)
+        _log(f"data: {len(data.sequences)} sequences, {len(data.shapes)} shapes; train {len(split.train_sequences)} "
+             f"sequences ({frames} frames); test {counts}")
+        phase("load", sequences=len(data.sequences), shapes=len(data.shapes), train_sequences=len(split.train_sequences),
+              train_frames=frames, test=counts, split=split.by, test_shapes=split.test_shapes,
+              vertices=data.num_vertices)
+        model_dir = work / "model"
+        old_split = model_dir / "split.json"
+        if old_split.is_file() and json.loads(old_split.read_text()) != split.to_dict():
+            import shutil
+
+            _log("the dataset grew since the last run: training starts over")
+            shutil.rmtree(model_dir)
+        fit = train_fit(data, model_dir, split, config=FitConfig(epochs=args.fit_epochs), device=device,
+                        time_budget=max(5.0, min(args.fit_budget, left() - args.eval_reserve - 30)))
+        phase("train_fit", **fit.to_dict())
+        wr_budget = left() - args.eval_reserve - 20  # 20 s: baselines + packing
+        wcfg = WrinkleConfig(hidden=args.hidden, window=args.window, batch_size=args.batch_size, epochs=args.epochs,
+                             feature_mode=args.features, val_every=args.val_every)
+        _log(f"training the wrinkle GRU for at most {wr_budget:.0f} s")
+        wr = train_wrinkle(data, model_dir, split, config=wcfg, device=device, time_budget=max(5.0, wr_budget),
+                           checkpoint_every=60.0,
+                           progress=lambda e, n, info: _log(f"epoch {e}: loss {info['loss']:.4g}, held-out "
+                                                            f"{info['val_cm']}") if e % 50 == 0 else None)
+        phase("train_wrinkle", **wr.to_dict())
+        fit_linear_baselines(data, model_dir, split, feature_mode=args.features)
+        phase("baselines")
+
+        # ---------------------------------------------------------------- 3. evaluate
+        from simgen.learn import evaluate_garment, format_summary, load_garment_model
+
+        ev_dir = work / "eval"
+        metrics = evaluate_garment(model_dir, data, ev_dir, device=device, timing_frames=args.timing_frames,
+                                   inside_stride=args.inside_stride, max_sequences=args.eval_sequences)
+        phase("evaluate")
+        model = load_garment_model(model_dir, identity=data.identity, device=device)
+        report["compare"] = _compare_npz(model, data, split, out / "compare.npz", args.compare_frames)
+        _tar_fit_model(model_dir, out / "fit_model.tar")
+        for name in ("error_per_frame.png", "shape_generalization.png", "training.png"):
+            if (ev_dir / name).is_file():
+                (out / name).write_bytes((ev_dir / name).read_bytes())
+        metrics.pop("plots", None)
+        report.update(metrics)
+        phase("package")
+        summary = format_summary(metrics)
+        (out / "summary.txt").write_text(summary + "\n\n" + json.dumps(report["phases"], indent=1) + "\n")
+        print(summary)
+        status = 0
+    except Exception as exc:  # report what was done; the JSON says where it stopped
+        report["error"] = f"{type(exc).__name__}: {exc}"
+        report["traceback"] = traceback.format_exc()
+        print(report["traceback"], file=sys.stderr)
+        status = 1
+    report["total_seconds"] = round(time.monotonic() - t0, 1)
+    _write_json(out / "metrics.json", report)
+    _log(f"done in {report['total_seconds']} s; results in {out}")
+    return status
+
+
+def plots_from(folder: Path) -> None:
+    """Draw the plots from a returned metrics.json and fit_model.tar (CPU machine)."""
+    from simgen.learn.plots import plot_all
+
+    metrics = json.loads((folder / "metrics.json").read_text())
+    model_dir = None
+    tar_path = folder / "fit_model.tar"
+    if tar_path.is_file():
+        with tarfile.open(tar_path) as tar:
+            tar.extractall(folder / "unpacked", filter="data")
+        model_dir = folder / "unpacked" / "model"
+    for p in plot_all(metrics, folder, model_dir=model_dir):
+        print(p)
+
+
+def usd_from(npz_path: Path, usd_path: Path) -> None:
+    """USD with simulation, model and LBS side by side, coloured by error, from compare.npz."""
+    from simgen.io.usd import MeshTrack, write_usd
+    from simgen.learn.compare import error_colors
+
+    z = np.load(npz_path)
+    gt = z["ground_truth"].astype(np.float32)
+    body = z["body"].astype(np.float32)
+    width = float(np.ptp(body.reshape(-1, 3)[:, 0]))
+    spacing = max(1.0, 1.15 * width)
+    tracks = []
+    for k, name in enumerate(("ground_truth", "ours", "lbs")):
+        g = z[name].astype(np.float32)
+        colors = None if name == "ground_truth" else error_colors(np.linalg.norm(g - gt, axis=-1))
+        off = np.array([k * spacing, 0, 0], dtype=np.float32)
+        tracks.append(MeshTrack(name=f"body_{name}", points=body + off, faces=z["body_faces"], role="body"))
+        tracks.append(MeshTrack(name=f"garment_{name}", points=g + off, faces=z["garment_faces"], colors=colors,
+                                role="garment"))
+    print(write_usd(usd_path, tracks, fps=float(z["fps"]), metadata={"sequence": str(z["sequence"]),
+                                                                      "compare_order": ["ground_truth", "ours", "lbs"]}))
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--out", type=Path, help="folder whose files come back (small)")
+    ap.add_argument("--work", type=Path, default=Path("/root/simgen-thesis"), help="store, models, state (stays)")
+    ap.add_argument("--device", default="cuda")
+    ap.add_argument("--spec", default="thesis-tshirt")
+    ap.add_argument("--motions", nargs="+", default=DEFAULT_MOTIONS)
+    ap.add_argument("--shapes", nargs="+", default=DEFAULT_SHAPES)
+    ap.add_argument("--max-frames", type=int, default=150, help="frames kept per clip")
+    ap.add_argument("--gen-batch", type=int, default=None, help="sequences per batched solver call")
+    ap.add_argument("--substeps", type=int, default=None)
+    ap.add_argument("--split", default="shape", choices=["motion", "shape"])
+    ap.add_argument("--total-budget", type=float, default=560.0, help="seconds for everything")
+    ap.add_argument("--gen-budget", type=float, default=240.0)
+    ap.add_argument("--min-train", type=float, default=120.0, help="seconds generation leaves to training at least")
+    ap.add_argument("--fit-budget", type=float, default=30.0)
+    ap.add_argument("--eval-reserve", type=float, default=90.0, help="seconds kept for evaluation and packing")
+    ap.add_argument("--fit-epochs", type=int, default=2000)
+    ap.add_argument("--epochs", type=int, default=2000, help="wrinkle GRU epochs (the budget usually ends it)")
+    ap.add_argument("--hidden", type=int, default=1500)
+    ap.add_argument("--window", type=int, default=90)
+    ap.add_argument("--batch-size", type=int, default=128)
+    ap.add_argument("--features", default="pose_velocity", choices=["pose", "pose_velocity"])
+    ap.add_argument("--val-every", type=int, default=25)
+    ap.add_argument("--timing-frames", type=int, default=100)
+    ap.add_argument("--inside-stride", type=int, default=5)
+    ap.add_argument("--eval-sequences", type=int, default=40, help="at most this many sequences per test group")
+    ap.add_argument("--compare-frames", type=int, default=60)
+    ap.add_argument("--plots-from", type=Path, help="CPU machine: draw the plots from a returned folder")
+    ap.add_argument("--usd-from", type=Path, help="CPU machine: compare.npz to turn into USD (with --usd)")
+    ap.add_argument("--usd", type=Path, default=Path("compare.usdc"))
+    args = ap.parse_args()
+    if args.plots_from is not None:
+        plots_from(args.plots_from)
+        return 0
+    if args.usd_from is not None:
+        usd_from(args.usd_from, args.usd)
+        return 0
+    if args.out is None:
+        ap.error("--out is required")
+    return run(args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,450 @@
+"""Evaluation of a trained garment model against the thesis (section 4.4: Figs. 4.6, 4.7, Table 4.1).
+
+:func:`evaluate_garment` compares, on the test groups of the split the model was trained on:
+
+- per-vertex mean error [cm] per frame of the full model (with and without the collision
+  post-process) beside the LBS baseline and the linear regressors (Fig. 4.7);
+- error as the body shape leaves the training range, on a static pose (the rest-pose fit
+  simulations S_c(beta, 0)) and on a motion (the held-out motion's sequences of every shape)
+  (Fig. 4.6; the thesis sweeps the shape within one simulation, our stores hold one shape per
+  simulation, so each point is one simulation);
+- the share of garment vertices inside the body (winding-number test of
+  :func:`simgen.body.surface.project_to_surface`, independent of the post-process's own query),
+  with and without the post-process, and of the simulation itself for reference;
+- the energies of the predictions from ``simgen.physics`` (membrane, bending, gravity, contact)
+  beside those of the simulation;
+- inference time per frame (frame by frame, one garment, as the thesis's runtime loop) on the CPU
+  and, when available, the GPU, with and without the post-process, and the model sizes, beside
+  Table 4.1.
+
+Everything goes into ``metrics.json``; :mod:`simgen.learn.plots` draws the figures from it.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from simgen._fileio import atomic_write_bytes
+from simgen.errors import InputError
+from simgen.learn.checkpoint import model_size_mb, read_config
+from simgen.learn.data import GarmentData, make_split
+from simgen.learn.features import motion_features
+from simgen.learn.garment_model import (FIT_DIR, WRINKLE_DIR, GarmentModel, StreamState, lbs_baseline, linear_baseline, load_garment_model, load_linear_baselines,
+                                        load_split)
+
+__all__ = ["THESIS", "METHODS", "METHOD_LABELS", "evaluate_garment", "time_inference", "format_summary",
+           "METRICS_FILE"]
+
+METRICS_FILE = "metrics.json"
+
+#: Thesis Table 4.1 and section 4.4.3 (Intel Core i7-6700 CPU, Nvidia Titan X GPU; T-shirt of 8,710 triangles).
+THESIS = {
+    "ms_per_frame": {"without_postprocess": 1.51, "with_postprocess": 4.01},
+    "ms_per_frame_std": {"without_postprocess": 0.28, "with_postprocess": 0.27},
+    "size_mb": {"fit": 1.1, "wrinkle": 108.1},
+    "hardware": "Intel Core i7-6700 CPU, Nvidia Titan X GPU",
+    "garment_triangles": 8710,
+    "epochs": 2000,
+}
+
+METHODS = ("model", "model_raw", "fit_only", "lbs", "lr_pose", "lr_shape_pose")
+METHOD_LABELS = {
+    "model": "ours: fit + wrinkle, post-processed",
+    "model_raw": "ours: fit + wrinkle, no post-process",
+    "fit_only": "ours: fit only (no wrinkle GRU)",
+    "lbs": "LBS of the template",
+    "lr_pose": "linear regression from pose (thesis LR)",
+    "lr_shape_pose": "linear regression from shape + pose",
+}
+
+
+def _vertex_error_cm(pred: torch.Tensor, gt: torch.Tensor) -> np.ndarray:
+    """Mean over vertices of the Euclidean error, per frame [cm]: (T, V, 3) x2 -> (T,)."""
+    return ((pred - gt).norm(dim=-1).mean(dim=-1) * 100).cpu().numpy().astype(np.float64)
+
+
+def _identity(data: GarmentData) -> dict:
+    return {"garment": dict(data.identity.get("garment", {})), "body": dict(data.identity.get("body", {}))}
+
+
+# ------------------------------------------------------------------------------------ predictions
+@torch.no_grad()
+def _predict_all(model: GarmentModel, lrs: dict, betas, poses, trans, fps: float) -> dict[str, torch.Tensor]:
+    """Every method's garment [m] (T, V, 3) for one sequence, plus 'moved' (T, V) of the post-process."""
+    dev = model.device
+    b = torch.as_tensor(betas, dtype=torch.float32, device=dev)
+    p = torch.as_tensor(poses, dtype=torch.float32, device=dev)
+    t = torch.as_tensor(trans, dtype=torch.float32, device=dev)
+    pred = model.predict(b, p, t, fps, postprocess=True)
+    out = {"model": pred.vertices, "model_raw": pred.raw, "moved": pred.moved}
+    a = pred.transforms
+    out["fit_only"] = lbs_baseline_fit(model, b, a)
+    out["lbs"] = lbs_baseline(model.template, b, a)
+    for name, lr in lrs.items():
+        f = motion_features(p, t, fps, lr.feature_mode)
+        out[f"lr_{name}"] = linear_baseline(lr, model.template, b, f, a)
+    return out
+
+
+def lbs_baseline_fit(model: GarmentModel, betas: torch.Tensor, transforms: torch.Tensor) -> torch.Tensor:
+    """T_c + R_G(beta) skinned: the model without its wrinkle regressor."""
+    from simgen.learn.skinning import lbs_torch
+
+    return lbs_torch(model.template.template_smoothed + model.fit(betas), model.template.skin_weights, transforms)
+
+
+def _inside_fraction(points: dict[str, np.ndarray], body_vertices: np.ndarray, faces: np.ndarray,
+                     device: str) -> dict[str, float]:
+    """Fraction of each set's points strictly inside the body (winding number), one query."""
+    from simgen.body.surface import project_to_surface
+
+    names = list(points)
+    sizes = [len(points[n]) for n in names]
+    sd = project_to_surface(np.concatenate([points[n] for n in names]), body_vertices, faces,
+                            device=device).signed_distance
+    out, start = {}, 0
+    for n, k in zip(names, sizes):
+        out[n] = float(np.mean(sd[start:start + k] < 0.0))
+        start += k
+    return out
+
+
+# ------------------------------------------------------------------------------------ physics
+def _physics_terms(data: GarmentData, runs: list[dict], body, device) -> dict:
+    """Mean SNUG terms per frame [J] of the simulation and the predictions (``simgen.physics``).
+
+    runs: [{"fps", "body_vertices" (T, Vb, 3), "sets": {name: positions (T, V, 3)}}]. The rest shape
+    is the garment template the solver used, the contact term the solver's own parameters.
+    Returns {name: {term: mean}} plus "terms_info".
+    """
+    from simgen.physics import BodySurface as PhysicsSurface
+    from simgen.physics import ClothRest, evaluate_sequence
+    from simgen.physics.sources import contact_params_from
+
+    if data.material is None:
+        return {"skipped": "the data carries no material (not read from a dataset store)"}
+    solver = data.attrs.get("solver", {})
+    params = contact_params_from(solver.get("config", solver))
+    rest_shape = data.rest_template if data.rest_template is not None else data.template
+    rest = ClothRest.from_mesh(rest_shape, data.faces, data.material, dtype=torch.float64)
+    surface = PhysicsSurface(body.faces, body.v_template)
+    sums: dict[str, dict[str, list]] = {}
+    for run in runs:
+        for name, pos in run["sets"].items():
+            report = evaluate_sequence(pos, run["body_vertices"], rest, surface, run["fps"], contact_params=params,
+                                       device=device)
+            for term, value in report.means().items():
+                sums.setdefault(name, {}).setdefault(term, []).append(value)
+    out = {name: {t: _mean(v) for t, v in terms.items()} for name, terms in sums.items()}
+    out["terms_info"] = {"unit": "J per frame (mean over frames and sequences)", "sequences": len(runs),
+                         "material": getattr(data.material, "name", str(data.material)),
+                         "contact": {"margin": params.margin, "stiffness": params.stiffness, "power": params.power}}
+    return out
+
+
+# ------------------------------------------------------------------------------------ timing
+@torch.no_grad()
+def time_inference(model: GarmentModel, betas, poses, trans, fps: float, *, device, postprocess: bool,
+                   frames: int = 100, warmup: int = 10) -> dict:
+    """Milliseconds per frame of frame-by-frame inference of one garment (thesis Table 4.1).
+
+    Per frame: body joint transforms, R_G, one GRU step, garment skinning; with the post-process
+    also the posed body and the push-out. Returns {"mean_ms", "std_ms", "median_ms", "frames"}.
+    """
+    dev = torch.device(device)
+    model = model.to(dev)
+    b = torch.as_tensor(betas, dtype=torch.float32, device=dev)
+    p = torch.as_tensor(poses, dtype=torch.float32, device=dev)
+    t = torch.as_tensor(trans, dtype=torch.float32, device=dev)
+    n = len(p)
+    state = StreamState()
+    times = []
+    sync = torch.cuda.synchronize if dev.type == "cuda" else (lambda: None)
+    for k in range(warmup + frames):
+        i = k % n
+        sync()
+        t0 = time.perf_counter()
+        model.step(state, b[i:i + 1], p[i:i + 1], t[i:i + 1], fps, postprocess=postprocess)
+        sync()
+        if k >= warmup:
+            times.append((time.perf_counter() - t0) * 1e3)
+    a = np.asarray(times)
+    return {"mean_ms": float(a.mean()), "std_ms": float(a.std()), "median_ms": float(np.median(a)),
+            "frames": int(len(a))}
+
+
+# ------------------------------------------------------------------------------------ main entry
+def _axis_of(betas: np.ndarray) -> tuple[int | None, float]:
+    """(component, value) of a shape with at most one nonzero component; (None, 0) for others."""
+    nz = np.flatnonzero(np.abs(betas) > 1e-6)
+    if len(nz) == 0:
+        return -1, 0.0
+    if len(nz) == 1:
+        return int(nz[0]), float(betas[nz[0]])
+    return None, 0.0
+
+
+def _spread(ids: list[str], data: GarmentData, limit: int | None) -> list[str]:
+    """At most ``limit`` ids, taken round-robin over motions (every motion represented first)."""
+    if limit is None or len(ids) <= limit:
+        return ids
+    by_motion: dict[str, list[str]] = {}
+    for i in ids:
+        by_motion.setdefault(data.sequences[i].motion, []).append(i)
+    queues = [list(v) for _, v in sorted(by_motion.items())]
+    out: list[str] = []
+    while len(out) < limit:
+        for q in queues:
+            if q and len(out) < limit:
+                out.append(q.pop(0))
+    return sorted(out)
+
+
+def _mean(values) -> float | None:
+    v = [x for x in values if x is not None and math.isfinite(x)]
+    return float(np.mean(v)) if v else None
+
+
+def evaluate_garment(model_dir: str | Path, data: GarmentData, out_dir: str | Path | None = None, *, device="cpu",
+                     body=None, timing: bool = True, timing_frames: int = 100, inside_stride: int = 5,
+                     train_sequences: int = 4, physics_sequences: int = 4, max_sequences: int | None = None,
+                     plots: bool = True, progress=None) -> dict:
+    """Evaluate the models in ``model_dir`` on ``data``; write OUT/metrics.json (and plots).
+
+    device: where predictions run; inside_stride: test every N-th frame for vertices inside the body
+    (a Warp winding-number query per frame); train_sequences: how many training sequences to score
+    too (to see over-fitting); physics_sequences: how many held-out-motion sequences get the
+    ``simgen.physics`` terms (0: none); max_sequences: at most this many sequences per test group
+    (None: all); progress(done, total) per sequence. Returns the metrics dict.
+    """
+    dev = torch.device(device)
+    model = load_garment_model(model_dir, identity=_identity(data), body=body, device=dev)
+    lrs = load_linear_baselines(model_dir, identity=_identity(data), device=dev)
+    split = load_split(model_dir) or make_split(data, "motion")
+    body_model = model.body
+    faces = body_model.faces.cpu().numpy()
+    warp_device = "cuda:0" if dev.type == "cuda" else "cpu"
+
+    groups = {k: _spread([i for i in v if i in data.sequences], data, max_sequences) for k, v in split.test.items()}
+    if train_sequences > 0:
+        groups["train"] = _spread([i for i in split.train_sequences if i in data.sequences], data, train_sequences)
+    groups = {k: v for k, v in groups.items() if v}
+    if not groups:
+        raise InputError("the dataset holds none of the model's test sequences")
+    total = sum(len(v) for v in groups.values())
+
+    methods = [m for m in METHODS if not m.startswith("lr_") or m[3:] in lrs]
+    per_seq: dict[str, dict] = {}
+    group_frames: dict[str, dict[str, list]] = {}
+    inside: dict[str, dict[str, list]] = {}
+    physics_runs: list[dict] = []
+    done = 0
+    for group, ids in groups.items():
+        for sid in ids:
+            s = data.sequences[sid]
+            preds = _predict_all(model, lrs, s.betas, s.poses, s.trans, s.fps)
+            gt = torch.as_tensor(s.vertices, device=dev)
+            errs = {m: _vertex_error_cm(preds[m], gt) for m in methods}
+            moved = float(preds["moved"].float().mean()) if preds["moved"] is not None else 0.0
+            per_seq[sid] = {"group": group, "motion": s.motion, "shape_id": s.shape_id,
+                            "betas": [float(x) for x in s.betas[0]], "frames": s.num_frames, "fps": s.fps,
+                            "error_cm_per_frame": {m: [round(float(x), 4) for x in e] for m, e in errs.items()},
+                            "mean_error_cm": {m: float(e.mean()) for m, e in errs.items()},
+                            "moved_by_postprocess": moved}
+            for m, e in errs.items():
+                group_frames.setdefault(group, {}).setdefault(m, []).extend(e.tolist())
+            # Vertices inside the body, every inside_stride-th frame.
+            frames = list(range(0, s.num_frames, max(1, inside_stride)))
+            bv = body_model(torch.as_tensor(s.betas[frames], device=dev), torch.as_tensor(s.poses[frames], device=dev),
+                            torch.as_tensor(s.trans[frames], device=dev))[0].cpu().numpy()
+            for k, f in enumerate(frames):
+                sets = {"ground_truth": s.vertices[f], "model": preds["model"][f].cpu().numpy(),
+                        "model_raw": preds["model_raw"][f].cpu().numpy(), "lbs": preds["lbs"][f].cpu().numpy()}
+                for m, frac in _inside_fraction(sets, bv[k], faces, warp_device).items():
+                    inside.setdefault(group, {}).setdefault(m, []).append(frac)
+            if group == "held_out_motion" and len(physics_runs) < physics_sequences:
+                bv_all = body_model(torch.as_tensor(s.betas, device=dev), torch.as_tensor(s.poses, device=dev),
+                                    torch.as_tensor(s.trans, device=dev))[0].cpu().numpy()
+                physics_runs.append({"fps": s.fps, "body_vertices": bv_all, "sets": {
+                    "ground_truth": s.vertices, **{m: preds[m].cpu().numpy() for m in ("model", "model_raw", "lbs")}}})
+            done += 1
+            if progress is not None:
+                progress(done, total)
+
+    summary = {}
+    for group, by_method in group_frames.items():
+        summary[group] = {"sequences": len(groups[group]), "frames": len(next(iter(by_method.values()))),
+                          "error_cm": {m: float(np.mean(v)) for m, v in by_method.items()},
+                          "inside_percent": {m: 100.0 * float(np.mean(v)) for m, v in inside.get(group, {}).items()}}
+
+    metrics = {
+        "model_dir": str(model_dir), "dataset": data.source, "garment": data.identity.get("garment"),
+        "body": data.identity.get("body"), "split": split.by, "test_shapes": split.test_shapes,
+        "train_shapes": split.train_shapes, "methods": {m: METHOD_LABELS[m] for m in methods},
+        "training": {name: read_config(Path(model_dir) / sub).get("training", {})
+                     for name, sub in (("fit", FIT_DIR), ("wrinkle", WRINKLE_DIR))
+                     if (Path(model_dir) / sub / "config.json").is_file()},
+        "groups": summary, "sequences": per_seq,
+        "shape_static": _shape_static(model, lrs, data, split, methods),
+        "shape_motion": _shape_motion(per_seq, data, split, methods),
+        "clearance_m": model.clearance,
+        "thesis": THESIS,
+    }
+    if physics_sequences > 0:
+        try:
+            from simgen.learn.data import body_for_identity
+
+            metrics["physics"] = _physics_terms(data, physics_runs, body_for_identity(data.identity, body), dev) \
+                if physics_runs else {"skipped": "no held-out-motion sequence"}
+        except ImportError as exc:
+            metrics["physics"] = {"skipped": f"simgen.physics is not available ({exc})"}
+    metrics["size_mb"] = {"fit": model_size_mb(model.fit),
+                          "wrinkle": model_size_mb(model.wrinkle) if model.wrinkle is not None else None,
+                          **{f"lr_{k}": model_size_mb(v) for k, v in lrs.items()}}
+    if timing:
+        s = data.sequences[next(iter(groups.get("held_out_motion") or next(iter(groups.values()))))]
+        devices = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+        metrics["timing"] = {}
+        for d in devices:
+            metrics["timing"][d] = {
+                "without_postprocess": time_inference(model, s.betas, s.poses, s.trans, s.fps, device=d,
+                                                      postprocess=False, frames=timing_frames),
+                "with_postprocess": time_inference(model, s.betas, s.poses, s.trans, s.fps, device=d,
+                                                   postprocess=True, frames=timing_frames),
+                "threads": torch.get_num_threads() if d == "cpu" else None,
+                "device_name": torch.cuda.get_device_name() if d == "cuda" else _cpu_name(),
+            }
+        model.to(dev)
+    if out_dir is not None:
+        out = Path(out_dir)
+        out.mkdir(parents=True, exist_ok=True)
+        atomic_write_bytes(out / METRICS_FILE, (json.dumps(metrics, indent=1) + "\n").encode())
+        if plots:
+            try:
+                from simgen.learn.plots import plot_all
+
+                metrics["plots"] = [str(p) for p in plot_all(metrics, out, model_dir=model_dir)]
+            except ImportError as exc:  # e.g. no matplotlib on a GPU machine: draw them later from the JSON
+                metrics["plots_skipped"] = f"{exc}"
+    return metrics
+
+
+def _cpu_name() -> str:
+    import platform
+
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+@torch.no_grad()
+def _shape_static(model: GarmentModel, lrs: dict, data: GarmentData, split, methods, rest_frames: int = 30) -> dict:
+    """Errors on the rest-pose fit simulations S_c(beta, 0) of every shape (Fig. 4.6, static pose).
+
+    The wrinkle GRU is run for ``rest_frames`` frames of the rest pose and its last frame used (the
+    static pose's steady state).
+    """
+    rows = []
+    dev = model.device
+    for sid in sorted(data.shapes):
+        entry = data.shapes[sid]
+        if "vertices" not in entry:
+            continue
+        b = torch.as_tensor(entry["betas"], device=dev).reshape(1, -1)
+        comp, value = _axis_of(entry["betas"])
+        poses = np.zeros((rest_frames, 24, 3), dtype=np.float32)
+        trans = np.zeros((rest_frames, 3), dtype=np.float32)
+        preds = _predict_all(model, lrs, np.repeat(entry["betas"][None], rest_frames, 0), poses, trans, 30.0)
+        gt = torch.as_tensor(entry["vertices"], device=dev)[None]
+        err = {m: float(_vertex_error_cm(preds[m][-1:], gt)[0]) for m in methods}
+        rows.append({"shape_id": sid, "betas": [float(x) for x in entry["betas"]], "component": comp, "value": value,
+                     "train": sid in split.train_shapes, "error_cm": err})
+        del b
+    return {"shapes": rows, "train_range": _train_range(data, split)}
+
+
+def _train_range(data: GarmentData, split) -> dict:
+    """Per shape component: [min, max] of its value over the training shapes."""
+    if not split.train_shapes:
+        return {}
+    b = np.stack([data.shapes[s]["betas"] for s in split.train_shapes])
+    return {str(c): [float(b[:, c].min()), float(b[:, c].max())] for c in range(b.shape[1])
+            if np.any(np.abs(b[:, c]) > 1e-6)}
+
+
+def _shape_motion(per_seq: dict, data: GarmentData, split, methods) -> dict:
+    """Mean error per shape on the held-out motion with the most shapes (Fig. 4.6, on a motion)."""
+    by_motion: dict[str, list[str]] = {}
+    for sid, row in per_seq.items():
+        if row["group"] in ("held_out_motion", "held_out_both"):
+            by_motion.setdefault(row["motion"], []).append(sid)
+    if not by_motion:
+        return {}
+    motion = max(sorted(by_motion), key=lambda m: len(by_motion[m]))
+    rows = []
+    for sid in sorted(by_motion[motion]):
+        row = per_seq[sid]
+        comp, value = _axis_of(np.asarray(row["betas"]))
+        rows.append({"sequence": sid, "shape_id": row["shape_id"], "component": comp, "value": value,
+                     "train": row["shape_id"] in split.train_shapes, "error_cm": row["mean_error_cm"]})
+    return {"motion": motion, "shapes": rows, "train_range": _train_range(data, split)}
+
+
+# ------------------------------------------------------------------------------------ text summary
+def format_summary(metrics: dict) -> str:
+    """A plain-text table of the headline numbers beside the thesis's."""
+    lines = []
+    groups = metrics.get("groups", {})
+    names = list(groups)
+    methods = list(metrics.get("methods", {}))
+    head = f"{'mean vertex error [cm]':40s}" + "".join(f"{g:>18s}" for g in names)
+    lines.append(head)
+    lines.append("-" * len(head))
+    for m in methods:
+        lines.append(f"{METHOD_LABELS[m]:40s}" + "".join(
+            f"{groups[g]['error_cm'].get(m, float('nan')):18.3f}" for g in names))
+    lines.append("")
+    lines.append(f"{'vertices inside the body [%]':40s}" + "".join(f"{g:>18s}" for g in names))
+    for m in ("ground_truth", "model_raw", "model", "lbs"):
+        label = {"ground_truth": "simulation (ground truth)", "model_raw": "ours, no post-process",
+                 "model": "ours, post-processed", "lbs": "LBS"}[m]
+        lines.append(f"{label:40s}" + "".join(
+            f"{groups[g].get('inside_percent', {}).get(m, float('nan')):18.3f}" for g in names))
+    phys = metrics.get("physics") or {}
+    rows = [m for m in ("ground_truth", "model", "model_raw", "lbs") if isinstance(phys.get(m), dict)]
+    if rows:
+        terms = ("strain", "bending", "collision", "inertia", "potential")
+        lines.append("")
+        lines.append(f"{'physics terms [J per frame]':40s}" + "".join(f"{t:>14s}" for t in terms))
+        labels = {"ground_truth": "simulation (ground truth)", "model": "ours, post-processed",
+                  "model_raw": "ours, no post-process", "lbs": "LBS"}
+        for m in rows:
+            lines.append(f"{labels[m]:40s}" + "".join(f"{phys[m].get(t, float('nan')):14.4g}" for t in terms))
+    timing = metrics.get("timing") or {}
+    if timing:
+        lines.append("")
+        lines.append(f"{'inference [ms/frame]':40s}{'w/o post-process':>18s}{'with post-process':>18s}")
+        th = THESIS["ms_per_frame"]
+        lines.append(f"{'thesis (i7-6700 + Titan X)':40s}{th['without_postprocess']:18.2f}{th['with_postprocess']:18.2f}")
+        for d, row in timing.items():
+            label = f"ours, {d} ({row.get('device_name') or ''})"[:40]
+            lines.append(f"{label:40s}{row['without_postprocess']['mean_ms']:18.2f}"
+                         f"{row['with_postprocess']['mean_ms']:18.2f}")
+    size = metrics.get("size_mb") or {}
+    if size:
+        lines.append("")
+        lines.append(f"{'model size [MB]':40s}{'fit':>18s}{'wrinkle':>18s}")
+        lines.append(f"{'thesis':40s}{THESIS['size_mb']['fit']:18.1f}{THESIS['size_mb']['wrinkle']:18.1f}")
+        w = size.get("wrinkle")
+        lines.append(f"{'ours':40s}{size['fit']:18.2f}{(w if w is not None else float('nan')):18.2f}")
+    return "\n".join(lines)

@@ -1,0 +1,128 @@
+"""End to end on real simulations: the `tiny` dataset preset (tshirt_1k, 2 shapes x 2 motions x 5
+frames, simulated here on the CPU in ~10 s), read into simgen.learn, trained and evaluated through the
+CLI, compared in USD, and refused for another garment."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+import torch
+
+from simgen.cli import main
+
+
+def run(argv, capsys):
+    try:
+        main(argv)
+        code = 0
+    except SystemExit as exc:
+        code = exc.code if isinstance(exc.code, int) else 1
+    out = capsys.readouterr()
+    return code, out.out, out.err
+
+
+@pytest.fixture(scope="module")
+def store(tmp_path_factory):
+    from simgen.dataset import generate_dataset
+
+    out = tmp_path_factory.mktemp("learn_store") / "tiny"
+    generate_dataset("tiny", out=str(out))
+    return out
+
+
+@pytest.fixture(scope="module")
+def data(store):
+    from simgen.learn import load_garment_data
+
+    return load_garment_data(store)
+
+
+def test_store_ground_truth_matches_the_torch_path_and_reconstructs(data):
+    from simgen.body import load
+    from simgen.learn import GarmentData, SequenceData, attach_ground_truth, lbs_torch
+
+    assert data.garment_name == "tshirt_1k" and len(data.sequences) == 4 and set(data.shapes) == {"zero", "b1p2"}
+    copy = GarmentData(identity=data.identity, template=data.template, template_smoothed=data.template_smoothed,
+                       faces=data.faces, skin_weights=data.skin_weights, shapes=data.shapes,
+                       sequences={k: SequenceData(**{**s.__dict__, "transforms": None, "wrinkle": None})
+                                  for k, s in data.sequences.items()})
+    attach_ground_truth(copy, load("open"))
+    for sid, s in data.sequences.items():
+        assert s.wrinkle is not None and s.split in ("train", "test")
+        assert np.abs(copy.sequences[sid].transforms - s.transforms).max() < 1e-5
+        assert np.abs(copy.sequences[sid].wrinkle - s.wrinkle).max() < 1e-5
+        rest = data.template_smoothed + data.shape_fit(s.shape_id) + s.wrinkle
+        posed = lbs_torch(torch.tensor(rest), torch.tensor(data.skin_weights), torch.tensor(s.transforms)).numpy()
+        assert np.abs(posed - s.vertices).max() < 1e-5
+
+
+def test_train_eval_compare_through_the_cli(store, tmp_path, capsys):
+    model = tmp_path / "model"
+    code, out, err = run(["train", "fit", "--dataset", str(store), "--out", str(model), "--epochs", "300"], capsys)
+    assert code == 0, err
+    assert "fit: 300 epochs" in out
+    code, out, err = run(["train", "wrinkle", "--dataset", str(store), "--out", str(model), "--epochs", "60",
+                          "--hidden", "32", "--window", "2", "--val-every", "20"], capsys)
+    assert code == 0, err
+    assert "wrinkle: 60 epochs" in out and "linear baselines" in out
+    for sub in ("template", "fit", "wrinkle", "lr_pose", "lr_shape_pose"):
+        assert (model / sub / "config.json").is_file() and (model / sub / "model.pt").is_file()
+    # Rerunning the same command finds the run complete: nothing more to do.
+    code, out, _ = run(["train", "wrinkle", "--dataset", str(store), "--out", str(model), "--epochs", "60",
+                        "--hidden", "32", "--window", "2", "--val-every", "20", "--no-baselines"], capsys)
+    assert code == 0 and "wrinkle: 60 epochs (epochs), 0 steps" in out
+
+    ev = tmp_path / "eval"
+    code, out, err = run(["eval", "garment", "--model", str(model), "--dataset", str(store), "--out", str(ev),
+                          "--timing-frames", "5", "--inside-stride", "2"], capsys)
+    assert code == 0, err
+    assert "mean vertex error [cm]" in out and "thesis (i7-6700 + Titan X)" in out
+    metrics = json.loads((ev / "metrics.json").read_text())
+    group = metrics["groups"]["held_out_motion"]
+    assert group["sequences"] == 2 and group["frames"] == 10
+    assert set(group["error_cm"]) >= {"model", "model_raw", "lbs", "lr_pose", "lr_shape_pose"}
+    assert all(0 < v < 50 for v in group["error_cm"].values())
+    assert group["inside_percent"]["model"] <= group["inside_percent"]["model_raw"]
+    # On the (tiny) training set the model fits the simulations far better than LBS of the template.
+    train = metrics["groups"]["train"]["error_cm"]
+    assert train["model_raw"] < 0.5 * train["lbs"]
+    assert metrics["timing"]["cpu"]["with_postprocess"]["mean_ms"] > 0
+    assert metrics["size_mb"]["fit"] == pytest.approx((3 * 521 * 21 + 10 * 20 + 20) * 4 / 1e6)
+    assert len(metrics["shape_static"]["shapes"]) == 2 and metrics["shape_motion"]["motion"] == "walk_fast"
+    for name in ("error_per_frame.png", "shape_generalization.png", "training.png"):
+        assert (ev / name).stat().st_size > 10_000
+
+    usd = tmp_path / "compare.usdc"
+    code, out, err = run(["export", "usd", "--compare", "--model", str(model), "--dataset", str(store),
+                          "--out", str(usd)], capsys)
+    assert code == 0, err
+    from simgen.io.usd import read_usd_meshes, validate_usd
+
+    meshes = read_usd_meshes(usd)
+    assert set(meshes) == {f"{k}_{w}" for k in ("body", "garment") for w in ("ground_truth", "ours", "lbs")}
+    assert meshes["garment_ours"].colors is not None and meshes["garment_ours"].num_frames == 5
+    gt, ours = meshes["garment_ground_truth"].points, meshes["garment_ours"].points
+    assert ours[..., 0].min() > gt[..., 0].max()  # side by side, no overlap
+    assert validate_usd(usd) == []
+
+
+def test_a_model_for_another_garment_is_refused(store, data, tmp_path, capsys):
+    from simgen.learn import FitConfig, make_split, train_fit
+
+    model = tmp_path / "model"
+    train_fit(data, model, make_split(data, "motion"), config=FitConfig(epochs=2))
+    other = tmp_path / "other"
+    shutil.copytree(model, other)
+    for sub in ("template", "fit"):
+        cfg_path = other / sub / "config.json"
+        cfg = json.loads(cfg_path.read_text())
+        cfg["garment"] = {"name": "dress_1k", "hash": "0" * 64}
+        cfg_path.write_text(json.dumps(cfg))
+    code, out, err = run(["eval", "garment", "--model", str(other), "--dataset", str(store), "--out",
+                          str(tmp_path / "ev"), "--no-timing"], capsys)
+    assert code == 2
+    assert "trained for garment 'dress_1k'" in err and "not for 'tshirt_1k'" in err
+    assert "Traceback" not in err

@@ -1,0 +1,136 @@
+"""Training on data with a known answer (test_learn_helpers.synthetic_data): the fit MLP and the
+wrinkle GRU learn it and beat LBS and the pose-only linear regression on held-out motions; splits;
+checkpoints resume to exactly the weights of an uninterrupted run; time budgets stop cleanly."""
+
+from __future__ import annotations
+
+
+import numpy as np
+import pytest
+import torch
+from test_learn_helpers import synthetic_data
+
+from simgen.errors import InputError
+from simgen.learn import (FitConfig, WrinkleConfig, fit_linear_baselines, lbs_baseline, linear_baseline,
+                          load_garment_model, load_linear_baselines, make_split, motion_features, train_fit,
+                          train_wrinkle)
+
+
+@pytest.fixture(scope="module")
+def data():
+    return synthetic_data(frames=40)
+
+
+def test_splits(data):
+    by_motion = make_split(data, "motion")
+    assert set(by_motion.test) == {"held_out_motion"}
+    assert all(data.sequences[i].split == "train" for i in by_motion.train_sequences)
+    assert {data.sequences[i].motion for i in by_motion.test["held_out_motion"]} == {"dance", "lunge"}
+    assert by_motion.train_shapes == sorted(data.shapes) and by_motion.test_shapes == []
+    by_shape = make_split(data, "shape")
+    assert by_shape.test_shapes == ["b0p2"]  # the one shape reaching |beta| = 2, beyond the others
+    assert all(data.sequences[i].shape_id != "b0p2" for i in by_shape.train_sequences)
+    assert {data.sequences[i].motion for i in by_shape.test["held_out_both"]} == {"dance", "lunge"}
+    assert all(data.sequences[i].split == "train" for i in by_shape.test["held_out_shape"])
+    chosen = make_split(data, "shape", test_shapes=["b1m1", "b1p1"])
+    assert chosen.test_shapes == ["b1m1", "b1p1"] and "b1p1" not in chosen.train_shapes
+    with pytest.raises(InputError, match="not in the dataset"):
+        make_split(data, "shape", test_shapes=["nope"])
+    with pytest.raises(InputError, match="split 'pose'"):
+        make_split(data, "pose")
+
+
+@torch.no_grad()
+def _errors(folder, data, ids):
+    model = load_garment_model(folder, identity=data.identity)
+    lrs = load_linear_baselines(folder)
+    err = {"model": [], "fit_only": [], "lbs": [], "lr_pose": [], "lr_shape_pose": []}
+    for sid in ids:
+        s = data.sequences[sid]
+        b, p, t = (torch.tensor(x) for x in (s.betas, s.poses, s.trans))
+        pred = model.predict(b, p, t, s.fps, postprocess=False)
+        gt = torch.tensor(s.vertices)
+        f = motion_features(p, t, s.fps, lrs["pose"].feature_mode)
+        from simgen.learn.evaluate import lbs_baseline_fit
+
+        outs = {"model": pred.vertices, "fit_only": lbs_baseline_fit(model, b, pred.transforms),
+                "lbs": lbs_baseline(model.template, b, pred.transforms),
+                "lr_pose": linear_baseline(lrs["pose"], model.template, b, f, pred.transforms),
+                "lr_shape_pose": linear_baseline(lrs["shape_pose"], model.template, b, f, pred.transforms)}
+        for k, v in outs.items():
+            err[k].append(float((v - gt).norm(dim=-1).mean()) * 100)
+    return {k: float(np.mean(v)) for k, v in err.items()}
+
+
+def test_models_learn_the_known_answer_and_beat_the_baselines(data, tmp_path):
+    torch.manual_seed(0)
+    split = make_split(data, "motion")
+    out = tmp_path / "model"
+    r = train_fit(data, out, split, config=FitConfig(epochs=2000, dropout=0.0))
+    assert r.epochs == 2000 and r.stopped == "epochs"
+    r = train_wrinkle(data, out, split, config=WrinkleConfig(hidden=96, epochs=40, window=16, batch_size=8,
+                                                               dropout=0.0, val_every=20))
+    assert r.epochs == 40 and r.val_error_cm is not None
+    fit_linear_baselines(data, out, split)
+    # The fit MLP alone recovers the constructed rest-pose fit: rest-pose error far below LBS's.
+    model = load_garment_model(out)
+    for sid, row in data.shapes.items():
+        pred = model.fit(torch.tensor(row["betas"])[None])[0].detach().numpy()
+        assert np.linalg.norm(pred - row["fit"], axis=1).mean() < 0.003, sid
+    test = _errors(out, data, split.test["held_out_motion"])
+    train = _errors(out, data, split.train_sequences[::4])
+    # On training data and on held-out motions the full model is better than LBS and pose-only LR.
+    assert train["model"] < 0.5 * train["lbs"]
+    assert test["model"] < 0.5 * test["lbs"]
+    assert test["model"] < test["lr_pose"]
+    assert test["model"] < 0.5 * test["fit_only"]  # the wrinkle GRU carries the pose-dependent part
+    log = (out / "wrinkle" / "log.csv").read_text().splitlines()
+    assert len(log) == 41 and log[0].startswith("epoch,steps,train_loss")
+    first, last = float(log[1].split(",")[2]), float(log[-1].split(",")[2])
+    assert last < 0.2 * first
+
+
+def _wrinkle_state(folder):
+    return torch.load(folder / "wrinkle" / "model.pt", weights_only=True)
+
+
+def test_resume_reproduces_an_uninterrupted_run(data, tmp_path):
+    split = make_split(data, "motion")
+    cfg = WrinkleConfig(hidden=16, epochs=4, window=8, batch_size=5, val_every=0)
+    train_wrinkle(data, tmp_path / "a", split, config=cfg)
+    first = train_wrinkle(data, tmp_path / "b", split, config=WrinkleConfig(**{**cfg.__dict__, "epochs": 2}))
+    assert first.epochs == 2
+    # The same settings with more epochs continue the saved run (model, optimiser, random state).
+    resumed = train_wrinkle(data, tmp_path / "b", split, config=cfg)
+    assert resumed.epochs == 4 and resumed.steps == first.steps
+    a, b = _wrinkle_state(tmp_path / "a"), _wrinkle_state(tmp_path / "b")
+    for k in a:
+        assert torch.equal(a[k], b[k]), k
+    rows = (tmp_path / "b" / "wrinkle" / "log.csv").read_text().splitlines()
+    assert [r.split(",")[0] for r in rows[1:]] == ["1", "2", "3", "4"]
+    with pytest.raises(InputError, match="other settings.*--restart"):
+        train_wrinkle(data, tmp_path / "b", split, config=WrinkleConfig(**{**cfg.__dict__, "hidden": 17}))
+    fresh = train_wrinkle(data, tmp_path / "b", split, config=WrinkleConfig(**{**cfg.__dict__, "hidden": 17}),
+                          resume=False)
+    assert fresh.epochs == 4
+
+
+def test_time_budget_stops_cleanly(data, tmp_path):
+    split = make_split(data, "motion")
+    r = train_wrinkle(data, tmp_path, split, config=WrinkleConfig(hidden=16, epochs=10_000, window=8, batch_size=4),
+                      time_budget=0.5)
+    assert r.stopped == "time budget" and r.epochs < 10_000 and r.steps >= 1
+    model = load_garment_model(tmp_path) if (tmp_path / "fit").is_dir() else None
+    assert model is None  # no fit model trained here; the wrinkle model alone still loads:
+    from simgen.learn import load_model
+
+    gru = load_model(tmp_path / "wrinkle", identity=data.identity)
+    assert gru.saved_config["training"]["epochs"] == r.epochs
+    r2 = train_fit(data, tmp_path, split, config=FitConfig(epochs=10_000_000), time_budget=0.3)
+    assert r2.stopped == "time budget" and 1 <= r2.epochs < 10_000_000
+
+
+def test_models_of_one_folder_share_a_split(data, tmp_path):
+    train_fit(data, tmp_path, make_split(data, "motion"), config=FitConfig(epochs=2))
+    with pytest.raises(InputError, match="another split"):
+        train_fit(data, tmp_path, make_split(data, "shape"), config=FitConfig(epochs=2))
