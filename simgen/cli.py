@@ -32,6 +32,13 @@ app.add_typer(body_app, name="body")
 app.add_typer(motion_app, name="motion")
 app.add_typer(garment_app, name="garment")
 app.add_typer(export_app, name="export")
+dataset_app = typer.Typer(help="Training datasets: generate (resumable, local or Ray), check, info, export.",
+                          no_args_is_help=True)
+app.add_typer(dataset_app, name="dataset")
+train_app = typer.Typer(help="Train learned garment models on a dataset store (thesis ch. 4).", no_args_is_help=True)
+app.add_typer(train_app, name="train")
+eval_app = typer.Typer(help="Evaluate simulations and learned models: physics, garment models.", no_args_is_help=True)
+app.add_typer(eval_app, name="eval")
 
 BODY_HELP = "Body model: 'open' (the bundled default) or a path to an SMPL model file (.npz or .pkl)."
 BETAS_HELP = "Shape coefficients, comma-separated (e.g. '1.5,-0.5'); missing ones are zero."
@@ -120,27 +127,27 @@ def _render_body(folder: Path, body, clip, vertices) -> tuple[Path, Path]:
 @app.command()
 def demo(
     out: Path = typer.Option(Path("simgen-demo"), "--out", help="Output folder."),
-    motion: str = typer.Option("jumping_jacks", "--motion", help="Library motion to perform."),
+    garment: str = typer.Option("tshirt", "--garment", help="Garment name (see `simgen garment list`)."),
+    motion: str = typer.Option("walk", "--motion", help="Library motion to perform."),
+    seconds: float = typer.Option(3.0, "--seconds", help="Seconds of the motion to simulate."),
     body: str = typer.Option("open", "--body", help=BODY_HELP),
     betas: Optional[str] = typer.Option(None, "--betas", help=BETAS_HELP),
-    frames: Optional[int] = typer.Option(None, "--frames", help="Use only the first N frames."),
+    device: Optional[str] = typer.Option(None, "--device", help="Warp device: cpu or cuda (default: Warp's)."),
     video: bool = typer.Option(True, "--video/--no-video", help="Render an MP4 (and a PNG preview)."),
 ) -> None:
-    """Pose the bundled body with a library motion; write USD + MP4 into --out and print the paths."""
+    """Simulate the T-shirt on the bundled body for a few seconds of a walk; write npz, USD and MP4.
+
+    The same as `simgen simulate --garment tshirt --motion walk --frames 91`: the thesis start
+    protocol (2 s of relax, ramp and rest), then the motion; about 1.5 minutes on a 2-core CPU.
+    """
     from simgen.motion import load_motion
 
-    model = _load_body(body)
-    beta_values = parse_betas(betas)
-    model.check_betas(beta_values or [0.0])
+    if not (seconds > 0):
+        raise InputError(f"--seconds must be > 0, got {seconds}")
     clip = load_motion(motion)
-    vertices, clip = _posed_body_sequence(model, clip, beta_values, frames)
-    out.mkdir(parents=True, exist_ok=True)
-    usd = _write_body_usd(out / f"{clip.name}.usdc", model, clip, vertices, beta_values)
-    typer.echo(f"usd: {usd}")
-    if video:
-        png, mp4 = _render_body(out, model, clip, vertices)
-        typer.echo(f"png: {png}")
-        typer.echo(f"mp4: {mp4}")
+    frames = min(int(round(seconds * clip.fps)) + 1, clip.num_frames)
+    _simulate_and_write(garment=garment, motion=motion, body=body, betas=betas, material=None, device=device,
+                        frames=frames, substeps=10, out=out, video=video)
 
 
 # --------------------------------------------------------------------------------------------- body
@@ -394,6 +401,12 @@ def simulate(
 
     Writes NAME_CLIP.npz (positions, per-frame stats), NAME_CLIP.usdc (body and garment) and an MP4.
     """
+    _simulate_and_write(garment=garment, motion=motion, body=body, betas=betas, material=material, device=device,
+                        frames=frames, substeps=substeps, out=out, video=video)
+
+
+def _simulate_and_write(*, garment: str, motion: str, body: str, betas: Optional[str], material: Optional[str],
+                        device: Optional[str], frames: Optional[int], substeps: int, out: Path, video: bool) -> None:
     import numpy as np
 
     from simgen.garment import load_garment
@@ -455,16 +468,30 @@ def simulate(
 @export_app.command("usd")
 def export_usd(
     out: Path = typer.Option(..., "--out", help="Output file (.usdc, or .usda for text)."),
-    motion: str = typer.Option(..., "--motion", help="Library motion to perform."),
+    motion: Optional[str] = typer.Option(None, "--motion", help="Library motion to perform (not with --compare)."),
     body: str = typer.Option("open", "--body", help=BODY_HELP),
     betas: Optional[str] = typer.Option(None, "--betas", help=BETAS_HELP),
     frames: Optional[int] = typer.Option(None, "--frames", help="Use only the first N frames."),
+    compare: bool = typer.Option(False, "--compare", help="Ground truth, model and LBS side by side, coloured by "
+                                 "error (needs --model and --dataset)."),
+    model_dir: Optional[Path] = typer.Option(None, "--model", help="--compare: trained model folder."),
+    dataset: Optional[str] = typer.Option(None, "--dataset", help="--compare: the dataset store."),
+    sequence: Optional[str] = typer.Option(None, "--sequence",
+                                           help="--compare: sequence id (default: the first held-out motion's)."),
 ) -> None:
-    """Write the animated body performing a motion as one USD file."""
+    """Write the animated body performing a motion as one USD file (or, with --compare, a model comparison)."""
     from simgen.motion import load_motion
 
     if out.suffix not in (".usd", ".usdc", ".usda"):
         raise InputError(f"--out {out}: the file name must end in .usdc, .usda or .usd")
+    if compare:
+        from simgen.learn._cli import run_export_compare
+
+        run_export_compare(out=out, model=model_dir, dataset=dataset, sequence=sequence, frames=frames,
+                           body=None if body == "open" else body, echo=typer.echo, progress_factory=_progress)
+        return
+    if motion is None:
+        raise InputError("--motion is required (or --compare with --model and --dataset)")
     model = _load_body(body)
     beta_values = parse_betas(betas)
     model.check_betas(beta_values or [0.0])
@@ -495,6 +522,210 @@ def render(
     png, mp4 = _render_body(out, model, clip, vertices)
     typer.echo(f"png: {png}")
     typer.echo(f"mp4: {mp4}")
+
+
+# --------------------------------------------------------------------------------------------- dataset
+@dataset_app.command("generate")
+def dataset_generate(
+    spec: str = typer.Argument(..., help="A TOML spec file or a preset: tiny, thesis-tshirt, thesis-dress."),
+    out: Optional[str] = typer.Option(None, "--out", help="Store folder or fsspec URL (default: the spec's)."),
+    ray: Optional[str] = typer.Option(None, "--ray", help="Run batches as Ray tasks: 'local' or a cluster address."),
+    device: Optional[str] = typer.Option(None, "--device", help="Warp device: auto, cpu, cuda or cuda:N."),
+    batch_size: Optional[int] = typer.Option(None, "--batch-size", help="Sequences per batched solver call."),
+    substeps: Optional[int] = typer.Option(None, "--substeps", help="Solver steps per frame."),
+    max_frames: Optional[int] = typer.Option(None, "--max-frames", help="Frames kept per clip (0: all)."),
+    motions: Optional[str] = typer.Option(None, "--motions", help="Comma-separated library motions (or globs)."),
+    shapes: Optional[str] = typer.Option(None, "--shapes", help="Comma-separated shape ids of the spec to keep."),
+    max_sequences: Optional[int] = typer.Option(None, "--max-sequences", help="Write at most N new sequences."),
+    time_budget: Optional[float] = typer.Option(None, "--time-budget",
+                                                help="Seconds: start no batch that would not finish in time."),
+    report: Optional[Path] = typer.Option(None, "--report", help="Also write the run report as JSON to this file."),
+    dry_run: bool = typer.Option(False, "--dry-run", help="Print the plan (jobs, frames) and write nothing."),
+) -> None:
+    """Simulate a spec's shapes x motions into a resumable Zarr store (rerun the same command to resume)."""
+    from simgen.dataset._cli import run_generate
+
+    code = run_generate(spec, out=out, ray=ray, max_sequences=max_sequences, time_budget=time_budget,
+                        report=report, dry_run=dry_run, console=_console(), progress_factory=_progress,
+                        overrides=dict(device=device, batch_size=batch_size, substeps=substeps, max_frames=max_frames,
+                                       motions=motions.split(",") if motions else None,
+                                       shapes=shapes.split(",") if shapes else None))
+    if code:
+        raise typer.Exit(code)
+
+
+@dataset_app.command("check")
+def dataset_check(
+    path: str = typer.Argument(..., help="The dataset store (folder or fsspec URL)."),
+    stride: int = typer.Option(1, "--stride", help="Check body penetration and strain on every N-th frame."),
+    max_depth: float = typer.Option(1.0e-3, "--max-depth", help="Deepest allowed vertex inside the body [m]."),
+    max_strain: float = typer.Option(1.0, "--max-strain", help="Largest allowed principal stretch - 1."),
+    require_complete: bool = typer.Option(False, "--require-complete", help="Planned but missing sequences fail."),
+    as_json: bool = typer.Option(False, "--json", help="Print the report as JSON."),
+) -> None:
+    """NaN/inf, cloth inside the posed body, strain outliers, missing frames, manifest vs store; exit 1 on a problem."""
+    from simgen.dataset._cli import run_check
+
+    code = run_check(path, stride=stride, max_depth=max_depth, max_strain=max_strain,
+                     require_complete=require_complete, as_json=as_json, progress_factory=_progress)
+    if code:
+        raise typer.Exit(code)
+
+
+@dataset_app.command("info")
+def dataset_info(
+    path: str = typer.Argument(..., help="The dataset store (folder or fsspec URL)."),
+    as_json: bool = typer.Option(False, "--json", help="Print JSON instead of tables."),
+) -> None:
+    """What a store holds: garment, body, material, solver, and one row per sequence."""
+    from simgen.dataset._cli import run_info
+
+    run_info(path, as_json=as_json)
+
+
+@dataset_app.command("export")
+def dataset_export(
+    path: str = typer.Argument(..., help="The dataset store (folder or fsspec URL), or a pack .npz "
+                                         "(python -m simgen.dataset pack)."),
+    sequence: str = typer.Argument(..., help="Sequence id (see `simgen dataset info`)."),
+    out: Path = typer.Option(Path("simgen-dataset-export"), "--out", help="Output folder."),
+    usd: bool = typer.Option(True, "--usd/--no-usd", help="Write SEQUENCE.usdc (body and garment)."),
+    mp4: bool = typer.Option(True, "--mp4/--no-mp4", help="Render SEQUENCE.mp4."),
+    body: Optional[str] = typer.Option(None, "--body", help="Body model source if the recorded one moved."),
+) -> None:
+    """Re-pose the body from a sequence's poses/trans/betas and write USD and/or MP4 with the garment."""
+    from simgen.dataset.export import export_sequence
+
+    progress, update = _progress(f"exporting {sequence}", 1)
+    with progress:
+        paths = export_sequence(path, sequence, out, usd=usd, mp4=mp4, body=body, progress=update)
+    for kind, p in paths.items():
+        if p is not None:
+            typer.echo(f"{kind}: {p}")
+
+
+# --------------------------------------------------------------------------------------------- train / eval garment
+def _train(kind: str, **kwargs) -> None:
+    from simgen.learn._cli import run_train
+
+    run_train(kind, echo=typer.echo, progress_factory=_progress, **kwargs)
+
+
+_T_DATASET = typer.Option(..., "--dataset", help="The dataset store (`simgen dataset generate`).")
+_T_OUT = typer.Option(..., "--out", help="Model folder (fit/, wrinkle/, baselines; shared by both commands).")
+_T_DEVICE = typer.Option("cpu", "--device", help="Torch device: cpu, cuda or cuda:N.")
+_T_SPLIT = typer.Option(None, "--split", help="motion (thesis: held-out motions) or shape (also hold out shapes); "
+                        "default: the folder's split, else motion.")
+_T_TEST_SHAPES = typer.Option(None, "--test-shapes", help="With --split shape: shape ids to hold out (default: "
+                              "the most extreme).")
+_T_BUDGET = typer.Option(None, "--time-budget", help="Seconds: stop cleanly (everything saved) after this long.")
+_T_RESTART = typer.Option(False, "--restart", help="Discard a saved run in the folder instead of resuming it.")
+_T_TB = typer.Option(False, "--tensorboard", help="Also write TensorBoard events (needs tensorboard).")
+_T_BODY = typer.Option(None, "--body", help="Body model file if the dataset was not made with the bundled body.")
+_T_MAXF = typer.Option(None, "--max-frames", help="Use only the first N frames of every sequence.")
+
+
+@train_app.command("fit")
+def train_fit_cmd(
+    dataset: str = _T_DATASET, out: Path = _T_OUT, device: str = _T_DEVICE,
+    epochs: Optional[int] = typer.Option(None, "--epochs", help="Epochs (thesis: 2000)."),
+    batch_size: Optional[int] = typer.Option(None, "--batch-size", help="Shapes per step (128)."),
+    hidden: Optional[int] = typer.Option(None, "--hidden", help="Hidden units (20)."),
+    dropout: Optional[float] = typer.Option(None, "--dropout", help="Dropout (0.2)."),
+    lr: Optional[float] = typer.Option(None, "--lr", help="Adam learning rate (1e-3)."),
+    split: Optional[str] = _T_SPLIT, test_shapes: Optional[str] = _T_TEST_SHAPES,
+    time_budget: Optional[float] = _T_BUDGET, restart: bool = _T_RESTART, tensorboard: bool = _T_TB,
+    seed: int = typer.Option(0, "--seed", help="Random seed."), body: Optional[str] = _T_BODY,
+) -> None:
+    """Train the garment fit MLP R_G(beta) on the rest-pose fits; resumes a run found in --out."""
+    _train("fit", dataset=dataset, out=out, device=device, epochs=epochs, batch_size=batch_size, hidden=hidden,
+           dropout=dropout, lr=lr, window=None, features=None, split=split, test_shapes=test_shapes,
+           time_budget=time_budget, restart=restart, tensorboard=tensorboard, seed=seed, baselines=False,
+           val_every=None, grad_clip=None, max_frames=None, body=body)
+
+
+@train_app.command("wrinkle")
+def train_wrinkle_cmd(
+    dataset: str = _T_DATASET, out: Path = _T_OUT, device: str = _T_DEVICE,
+    epochs: Optional[int] = typer.Option(None, "--epochs", help="Epochs (thesis: 2000)."),
+    batch_size: Optional[int] = typer.Option(None, "--batch-size", help="Sequences per batch (128)."),
+    hidden: Optional[int] = typer.Option(None, "--hidden", help="GRU units (1500)."),
+    dropout: Optional[float] = typer.Option(None, "--dropout", help="Dropout (0.2)."),
+    lr: Optional[float] = typer.Option(None, "--lr", help="Adam learning rate (1e-3)."),
+    window: Optional[int] = typer.Option(None, "--window", help="TBPTT window in frames (90)."),
+    features: Optional[str] = typer.Option(None, "--features", help="Motion descriptor: pose_velocity (default) or "
+                                           "pose (thesis)."),
+    split: Optional[str] = _T_SPLIT, test_shapes: Optional[str] = _T_TEST_SHAPES,
+    time_budget: Optional[float] = _T_BUDGET, restart: bool = _T_RESTART, tensorboard: bool = _T_TB,
+    val_every: Optional[int] = typer.Option(None, "--val-every", help="Held-out-motion error every N epochs (10)."),
+    grad_clip: Optional[float] = typer.Option(None, "--grad-clip", help="Clip the gradient norm (default: off)."),
+    baselines: bool = typer.Option(True, "--baselines/--no-baselines", help="Also fit the linear baselines."),
+    max_frames: Optional[int] = _T_MAXF, seed: int = typer.Option(0, "--seed", help="Random seed."),
+    body: Optional[str] = _T_BODY,
+) -> None:
+    """Train the wrinkle GRU R_L(beta, theta) with TBPTT (and fit the linear baselines); resumes a run."""
+    _train("wrinkle", dataset=dataset, out=out, device=device, epochs=epochs, batch_size=batch_size, hidden=hidden,
+           dropout=dropout, lr=lr, window=window, features=features, split=split, test_shapes=test_shapes,
+           time_budget=time_budget, restart=restart, tensorboard=tensorboard, seed=seed, baselines=baselines,
+           val_every=val_every, grad_clip=grad_clip, max_frames=max_frames, body=body)
+
+
+@eval_app.command("garment")
+def eval_garment_cmd(
+    model: Path = typer.Option(..., "--model", help="Trained model folder (`simgen train fit|wrinkle --out`)."),
+    dataset: str = typer.Option(..., "--dataset", help="The dataset store the model was trained on."),
+    out: Path = typer.Option(Path("simgen-eval"), "--out", help="Output folder (metrics.json and plots)."),
+    device: str = typer.Option("cpu", "--device", help="Torch device for the predictions: cpu, cuda or cuda:N."),
+    timing: bool = typer.Option(True, "--timing/--no-timing", help="Measure ms per frame (CPU, and GPU if any)."),
+    timing_frames: int = typer.Option(100, "--timing-frames", help="Frames timed per configuration."),
+    inside_stride: int = typer.Option(5, "--inside-stride", help="Test every N-th frame for cloth inside the body."),
+    max_frames: Optional[int] = _T_MAXF, body: Optional[str] = _T_BODY,
+) -> None:
+    """Errors vs LBS and linear regression (Figs. 4.6, 4.7), collisions, timing and size vs Table 4.1."""
+    from simgen.learn._cli import run_eval_garment
+
+    run_eval_garment(model=model, dataset=dataset, out=out, device=device, timing=timing,
+                     timing_frames=timing_frames, inside_stride=inside_stride, max_frames=max_frames, body=body,
+                     echo=typer.echo, progress_factory=_progress)
+
+
+# --------------------------------------------------------------------------------------------- eval physics
+@eval_app.command("physics")
+def eval_physics_cmd(
+    sources: list[Path] = typer.Argument(..., help="Simulated sequences (.npz of `simgen simulate`) and/or dataset "
+                                         "stores (folders)."),
+    out: Path = typer.Option(Path("simgen-eval"), "--out", help="Output folder (physics.csv, physics.png, "
+                             "physics_summary.json)."),
+    lbs: bool = typer.Option(False, "--lbs", help="Also evaluate each sequence's LBS baseline (the garment skinned "
+                             "with its weights) and compare incremental potentials frame by frame."),
+    split: Optional[str] = typer.Option(None, "--split", help="Dataset stores: only this split (train or test)."),
+    material: Optional[str] = typer.Option(None, "--material", help="Material preset for the energies (default: the "
+                                           "one each sequence was simulated with)."),
+    contact: str = typer.Option("solver", "--contact", help="Collision term: 'solver' (the parameters the sequence "
+                                "was simulated with) or 'snug' (margin 2 mm, k = 250 J/m^3, power 3)."),
+    normalisation: str = typer.Option("frame", "--normalisation", help="frame (J per frame), vertex (J per vertex), "
+                                      "area (J per m^2 of garment) or snug (J per frame, gravity from the root joint)."),
+    body: str = typer.Option("open", "--body", help=BODY_HELP),
+    frames: Optional[int] = typer.Option(None, "--frames", help="Use only the first N frames of each sequence."),
+    max_sequences: Optional[int] = typer.Option(None, "--max-sequences", help="Dataset stores: at most N sequences."),
+    device: Optional[str] = typer.Option(None, "--device", help="Torch device: cpu (default), cuda or cuda:N."),
+    bending_rest: str = typer.Option("template", "--bending-rest", help="Bending rest angle: template (the "
+                                     "solver's) or flat (SNUG's)."),
+    plot: bool = typer.Option(True, "--plot/--no-plot", help="Write the per-frame plot (needs matplotlib)."),
+) -> None:
+    """SNUG's physics terms per frame (strain, bending, gravity, inertia, collision, share inside the body)."""
+    from rich.console import Console
+
+    from simgen.physics._cli import eval_physics
+
+    summary = eval_physics(sources, out=out, lbs=lbs, split=split, material=material, contact=contact,
+                           normalisation=normalisation, body=_load_body(body), frames=frames,
+                           max_sequences=max_sequences, device=device, plot=plot, bending_rest=bending_rest,
+                           progress_factory=_progress, console=Console())
+    for kind, path in summary["files"].items():
+        typer.echo(f"{kind}: {path}")
+    if "plot" in summary:
+        typer.echo(f"plot: {summary['plot']}")
 
 
 def main(argv: Optional[list[str]] = None) -> None:

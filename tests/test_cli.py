@@ -64,7 +64,8 @@ def test_every_command_has_help(path, capsys):
         (["demo", "--betas", ",".join(["0.5"] * 11)], "11 values"),
         (["demo", "--motion", "no_such_motion"], "no_such_motion"),
         (["demo", "--body", "missing_model.pkl"], "missing_model.pkl"),
-        (["demo", "--frames", "0"], "--frames"),
+        (["demo", "--seconds", "0"], "--seconds"),
+        (["demo", "--garment", "no_such_garment"], "no_such_garment"),
         (["export", "usd", "--motion", "walk", "--out", "body.txt"], "body.txt"),
         (["motion", "list", "--split", "validation"], "--split"),
     ],
@@ -103,20 +104,22 @@ def test_demo_writes_valid_usd_mp4_png(capsys, tmp_path):
     from simgen.io.usd import read_usd_meshes, validate_usd
 
     out_dir = tmp_path / "demo"
-    code, out, err = run_main(["demo", "--out", str(out_dir), "--frames", "6"], capsys)
+    # The 1k-triangle T-shirt for 0.1 s of the walk (4 frames) after the start protocol.
+    code, out, err = run_main(["demo", "--out", str(out_dir), "--garment", "tshirt_1k", "--seconds", "0.1"], capsys)
     assert code == 0, err
-    usd = out_dir / "jumping_jacks.usdc"
-    mp4 = out_dir / "jumping_jacks.mp4"
-    png = out_dir / "jumping_jacks.png"
-    for path in (usd, mp4, png):
+    stem = out_dir / "tshirt_1k_walk"
+    usd, mp4, png, npz = (stem.with_suffix(ext) for ext in (".usdc", ".mp4", ".png", ".npz"))
+    for path in (usd, mp4, png, npz):
         assert str(path) in out and path.stat().st_size > 0
     assert validate_usd(usd) == []
     meshes = read_usd_meshes(usd)
-    body = meshes["body"]
-    assert body.points.shape[:2] == (6, 13348)
-    # The body moves: the clip's frames differ.
+    body, cloth = meshes["body"], meshes["tshirt_1k"]
+    assert body.points.shape[:2] == (4, 13348) and cloth.points.shape[:2] == (4, 521)
+    # The body starts walking and the garment moves with it.
     assert np.abs(body.points[-1] - body.points[0]).max() > 1e-3
-    assert imageio.get_reader(mp4).count_frames() == 6
+    assert np.abs(cloth.points[-1] - cloth.points[0]).max() > 1e-3
+    assert np.all(np.isfinite(cloth.points))
+    assert imageio.get_reader(mp4).count_frames() == 4
 
 
 def test_export_usd_with_betas_changes_the_body(capsys, tmp_path):
@@ -188,10 +191,10 @@ def test_wheel_ships_assets_and_demo_runs_from_another_folder(tmp_path):
     located = subprocess.run([sys.executable, "-c", "import simgen; print(simgen.__file__)"], cwd=elsewhere,
                              env=env, capture_output=True, text=True, check=True).stdout
     assert located.startswith(str(site))  # the installed copy runs, not the checkout
-    result = subprocess.run([sys.executable, "-m", "simgen.cli", "demo", "--frames", "3", "--no-video"],
-                            cwd=elsewhere, env=env, capture_output=True, text=True)
+    result = subprocess.run([sys.executable, "-m", "simgen.cli", "demo", "--garment", "tshirt_1k", "--seconds", "0.05",
+                             "--no-video"], cwd=elsewhere, env=env, capture_output=True, text=True)
     assert result.returncode == 0, result.stderr
-    assert (elsewhere / "simgen-demo" / "jumping_jacks.usdc").exists()
+    assert (elsewhere / "simgen-demo" / "tshirt_1k_walk.usdc").exists()
     listed = subprocess.run([sys.executable, "-m", "simgen.cli", "garment", "list", "--json"], cwd=elsewhere,
                             env=env, capture_output=True, text=True, check=True).stdout
     assert '"tshirt_1k"' in listed
