@@ -65,13 +65,21 @@ def shape_batch(n: int, num_betas: int, seed: int = 0) -> np.ndarray:
     return b
 
 
+def solver_config(self_contact: bool):
+    from simgen.sim import SolverConfig
+    from simgen.sim.energies import SelfContactParams
+
+    return SolverConfig(projection_offset=2.0e-4, self_contact=SelfContactParams() if self_contact else None)
+
+
 def run_motion(garment, body, motion: str, n: int, *, device: str, frames: int, substeps: int,
-               cuda_graph: bool) -> dict:
+               cuda_graph: bool, self_contact: bool = False) -> dict:
     from simgen.sim import SimulationConfig, SimulationFailure, SimulationJob, simulate_batch
 
     betas = shape_batch(n, body.num_betas)
     jobs = [SimulationJob(motion, betas=betas[i], frames=frames, key=str(i)) for i in range(n)]
-    cfg = SimulationConfig(substeps=substeps, device=device, cuda_graph=cuda_graph)
+    cfg = SimulationConfig(substeps=substeps, device=device, cuda_graph=cuda_graph,
+                           solver=solver_config(self_contact))
     memory = {"before": used_memory_mb(device), "built": None}
 
     def on_frame(done, total, phase):
@@ -88,7 +96,8 @@ def run_motion(garment, body, motion: str, n: int, *, device: str, frames: int, 
     per_substep = lambda key: float(np.mean(r0.stats[key][1:])) / substeps
     protocol_frames = len(r0.protocol_positions)
     row = {
-        "mode": "motion", "motion": motion, "instances": n, "frames": frames, "substeps": substeps,
+        "mode": "motion", "motion": motion, "instances": n, "self_contact": self_contact, "frames": frames,
+        "substeps": substeps,
         "cuda_graph": bool(cuda_graph and wp.get_device(device).is_cuda),
         "ms_per_frame_median": median,
         "ms_per_frame_p90": float(np.percentile(step, 90)) * 1e3,
@@ -111,13 +120,13 @@ def run_motion(garment, body, motion: str, n: int, *, device: str, frames: int, 
 
 
 def run_static(garment, body, n: int, *, device: str, frames: int, substeps: int, fps: float,
-               warmup: int = 2) -> dict:
-    from simgen.sim import BodyCollider, ClothModel, ImplicitSolver, SolverConfig
+               warmup: int = 2, self_contact: bool = False) -> dict:
+    from simgen.sim import BodyCollider, ClothModel, ImplicitSolver
 
     before = used_memory_mb(device)
     model = ClothModel.concatenate([ClothModel.from_garment(garment, device=device)] * n)
     collider = BodyCollider.from_static(body.v_template, body.faces, num_instances=n, device=device)
-    solver = ImplicitSolver(model, SolverConfig(projection_offset=2.0e-4))
+    solver = ImplicitSolver(model, solver_config(self_contact))
     state = model.state()
     dt = 1.0 / (fps * substeps)
     use_graph = wp.get_device(device).is_cuda
@@ -130,10 +139,16 @@ def run_static(garment, body, n: int, *, device: str, frames: int, substeps: int
 
     frame(False)                                          # loads kernels, takes the first contacts
     graph = None
+    frame_counts = None
     if use_graph:
+        # The host counters (Newton iterations) advance only while Python runs, i.e. at capture:
+        # add the captured frame's increments at each replay (the CG count is kept on the device).
+        before_counts = solver.host_counts()
         with wp.ScopedCapture(device=device, force_module_load=False) as capture:
             frame(True)
         graph = capture.graph
+        frame_counts = {k: v - before_counts[k] for k, v in solver.host_counts().items()}
+    solver.reset_stats()
     built = used_memory_mb(device)
     times = []
     for f in range(frames + warmup):
@@ -141,6 +156,7 @@ def run_static(garment, body, n: int, *, device: str, frames: int, substeps: int
         t0 = time.perf_counter()
         if graph is not None:
             wp.capture_launch(graph)
+            solver.add_host_counts(frame_counts)
         else:
             frame(False)
         wp.synchronize_device(device)
@@ -151,7 +167,8 @@ def run_static(garment, body, n: int, *, device: str, frames: int, substeps: int
     median = float(np.median(times)) * 1e3
     st = solver.stats
     row = {
-        "mode": "static", "instances": n, "frames": frames, "substeps": substeps, "cuda_graph": graph is not None,
+        "mode": "static", "instances": n, "self_contact": self_contact, "frames": frames, "substeps": substeps,
+        "cuda_graph": graph is not None,
         "ms_per_frame_median": median, "cloth_frames_per_s": n * 1e3 / median,
         "cg_per_newton": st["cg_per_newton"],
         "guard_failures": int(solver.deferred_bad.numpy().astype(bool).sum()) if graph is not None else st["retries"],
@@ -176,6 +193,8 @@ def main() -> None:
     parser.add_argument("--fps", type=float, default=30.0)
     parser.add_argument("--modes", nargs="+", default=["motion", "static"], choices=["motion", "static"])
     parser.add_argument("--no-graph", action="store_true", help="motion mode without CUDA graphs (for the profile)")
+    parser.add_argument("--self-contact", choices=["off", "on", "both"], default="both",
+                        help="our runs without and/or with cloth self-contact")
     parser.add_argument("--peers", nargs="*", default=[], choices=["vbd", "style3d"])
     parser.add_argument("--vbd-iterations", type=int, default=10)
     parser.add_argument("--out", type=Path, default=None)
@@ -200,7 +219,6 @@ def main() -> None:
         "garment": {"name": garment.name, "vertices": garment.num_vertices, "triangles": garment.num_triangles},
         "body_vertices": body.num_vertices,
         "substeps_per_frame": args.substeps, "fps": args.fps,
-        "self_contact": False,
         "runs": [],
     }
 
@@ -208,13 +226,15 @@ def main() -> None:
         result["runs"].append(row)
         print(json.dumps(row), flush=True)
 
+    contact_modes = {"off": [False], "on": [True], "both": [False, True]}[args.self_contact]
     for n in args.batches:
-        if "motion" in args.modes:
-            emit(run_motion(garment, body, args.motion, n, device=device, frames=args.frames,
-                            substeps=args.substeps, cuda_graph=not args.no_graph))
-        if "static" in args.modes:
-            emit(run_static(garment, body, n, device=device, frames=args.frames, substeps=args.substeps,
-                            fps=args.fps))
+        for sc in contact_modes:
+            if "motion" in args.modes:
+                emit(run_motion(garment, body, args.motion, n, device=device, frames=args.frames,
+                                substeps=args.substeps, cuda_graph=not args.no_graph, self_contact=sc))
+            if "static" in args.modes:
+                emit(run_static(garment, body, n, device=device, frames=args.frames, substeps=args.substeps,
+                                fps=args.fps, self_contact=sc))
     if args.peers:
         sys.path.insert(0, str(Path(__file__).resolve().parent))
         from bench_newton_peer import run_newton_peer
@@ -228,8 +248,10 @@ def main() -> None:
                 except Exception as exc:  # a peer failing must not lose our own numbers
                     row = {"error": f"{type(exc).__name__}: {exc}"}
                 emit({"mode": "peer", "peer": f"newton-{solver}", "instances": n, **row})
-    # Ratios: our static drape against each peer at the same instance count, and our motion run.
-    ours = {(r["mode"], r["instances"]): r for r in result["runs"] if r["mode"] in ("motion", "static")}
+    # Ratios: our static drape against each peer at the same instance count, and our motion run
+    # (without self-contact: the peers run without it too).
+    ours = {(r["mode"], r["instances"]): r for r in result["runs"]
+            if r["mode"] in ("motion", "static") and not r["self_contact"]}
     ratios = []
     for r in result["runs"]:
         if r["mode"] != "peer" or "cloth_frames_per_s" not in r:

@@ -15,6 +15,7 @@ the CPU machine with scripts/sim_render.py.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import time
@@ -48,6 +49,7 @@ def main() -> None:
     parser.add_argument("--float32", action="store_true", help="store positions as float32 (default float16)")
     parser.add_argument("--frames", type=int, default=None, help="first N frames of each clip")
     parser.add_argument("--device", default=None)
+    parser.add_argument("--self-contact", action="store_true", help="cloth self-contact on (2 mm thickness)")
     parser.add_argument("--out", type=Path, required=True)
     args = parser.parse_args()
 
@@ -56,12 +58,16 @@ def main() -> None:
     from simgen.motion import load_motion
     from simgen.motion.library import list_motions
     from simgen.sim import SimulationConfig, SimulationFailure, SimulationJob, simulate, simulate_batch
+    from simgen.sim.energies import SelfContactParams
 
     body = load("open")
     garment = load_garment(args.garment, body=body)
     args.out.mkdir(parents=True, exist_ok=True)
     names = [m["name"] for m in list_motions()] if args.motions == ["all"] else args.motions
     config = SimulationConfig(device=args.device)
+    if args.self_contact:
+        config = dataclasses.replace(config, solver=dataclasses.replace(config.solver,
+                                                                        self_contact=SelfContactParams()))
     runs = []
     if args.sequential:
         for name in names:
@@ -91,7 +97,10 @@ def main() -> None:
             else None,
             "nan": bool(not np.all(np.isfinite(pos))),
             "max_inside_regular": int(np.max(result.stats["inside_count"] - result.stats["self_intersection_count"])),
+            "self_contact": bool(args.self_contact),
             "max_depth_regular_mm": 1e3 * float(np.max(result.stats["max_depth_regular"])),
+            "max_depth_regular_frame": int(np.argmax(result.stats["max_depth_regular"])),
+            "frames_over_1mm_regular": int(np.sum(result.stats["max_depth_regular"] > 1.0e-3)),
             "max_self_intersection_vertices": int(np.max(result.stats["self_intersection_count"])),
             "retries": int(np.sum(result.stats["retries"])),
             "strain_mean": float(np.mean(stretch)), "strain_max": float(np.max(stretch)),

@@ -7,6 +7,7 @@ stderr naming the file, field or value, and exit code 2 (never a traceback). Hea
 
 from __future__ import annotations
 
+import dataclasses
 import sys
 from pathlib import Path
 from typing import Optional
@@ -394,6 +395,8 @@ def simulate(
     device: Optional[str] = typer.Option(None, "--device", help="Warp device: cpu or cuda (default: Warp's)."),
     frames: Optional[int] = typer.Option(None, "--frames", help="Simulate only the first N frames of the clip."),
     substeps: int = typer.Option(10, "--substeps", help="Solver steps per frame (10 at 30 fps: 3.33 ms)."),
+    self_contact: bool = typer.Option(False, "--self-contact/--no-self-contact",
+                                      help="Cloth-cloth vertex-triangle repulsion (2 mm thickness)."),
     out: Path = typer.Option(Path("simgen-sim"), "--out", help="Output folder."),
     video: bool = typer.Option(True, "--video/--no-video", help="Render an MP4 (and a PNG preview)."),
 ) -> None:
@@ -402,11 +405,12 @@ def simulate(
     Writes NAME_CLIP.npz (positions, per-frame stats), NAME_CLIP.usdc (body and garment) and an MP4.
     """
     _simulate_and_write(garment=garment, motion=motion, body=body, betas=betas, material=material, device=device,
-                        frames=frames, substeps=substeps, out=out, video=video)
+                        frames=frames, substeps=substeps, out=out, video=video, self_contact=self_contact)
 
 
 def _simulate_and_write(*, garment: str, motion: str, body: str, betas: Optional[str], material: Optional[str],
-                        device: Optional[str], frames: Optional[int], substeps: int, out: Path, video: bool) -> None:
+                        device: Optional[str], frames: Optional[int], substeps: int, out: Path, video: bool,
+                        self_contact: bool = False) -> None:
     import numpy as np
 
     from simgen.garment import load_garment
@@ -425,7 +429,12 @@ def _simulate_and_write(*, garment: str, motion: str, body: str, betas: Optional
     model.check_betas(beta_values or [0.0])
     cloth = load_garment(garment, body=model)
     clip = load_motion(motion)
-    config = SimulationConfig(substeps=substeps, material=material, record_body=True,
+    solver = SimulationConfig().solver
+    if self_contact:
+        from simgen.sim.energies import SelfContactParams
+
+        solver = dataclasses.replace(solver, self_contact=SelfContactParams())
+    config = SimulationConfig(substeps=substeps, material=material, record_body=True, solver=solver,
                               device="cuda:0" if device == "cuda" else device)
     total = config.relax_frames + config.ramp_frames + config.rest_frames + min(frames or clip.num_frames,
                                                                               clip.num_frames)

@@ -111,7 +111,7 @@ _SECTIONS = {
     "body": ("model",),
     "shapes": ("generator", "components", "values", "include_zero", "list"),
     "motions": ("library", "files", "test", "train", "start_frame", "max_frames"),
-    "solver": ("device", "fps", "substeps", "friction", *SOLVER_FIELDS),
+    "solver": ("device", "fps", "substeps", "friction", "self_contact", *SOLVER_FIELDS),
     "protocol": ("relax_frames", "ramp_frames", "rest_frames", "store_rest_frames"),
     "smoothing": ("method", "iterations", "lambda", "mu", "boundary"),
     "execution": ("batch_size", "max_attempts", "chunk_frames"),
@@ -165,6 +165,7 @@ class DatasetSpec:
     fps: float = 30.0
     substeps: int = 10
     friction: bool = True
+    self_contact: bool = False
     solver: dict = field(default_factory=dict)
     relax_frames: int = 15
     ramp_frames: int = 30
@@ -247,10 +248,13 @@ class DatasetSpec:
     def solver_config(self, *, substeps_factor: int = 1):
         """The :class:`simgen.sim.SimulationConfig` of every job (substeps multiplied on a retry)."""
         from simgen.sim import SimulationConfig, SolverConfig
+        from simgen.sim.energies import SelfContactParams
 
         kwargs = dict(self.solver)
         if not self.friction:
             kwargs["friction"] = None
+        if self.self_contact:
+            kwargs["self_contact"] = SelfContactParams()
         kwargs.setdefault("projection_offset", 2.0e-4)  # simulate()'s default: projected vertices count as outside
         solver = SolverConfig(**kwargs)
         return SimulationConfig(
@@ -312,6 +316,8 @@ class DatasetSpec:
             "solver": self.solver, "relax_frames": self.relax_frames, "ramp_frames": self.ramp_frames,
             "rest_frames": self.rest_frames, "store_rest_frames": self.store_rest_frames,
             "smoothing": self.smoothing, "start_frame": self.start_frame, "max_frames": self.max_frames,
+            # Only when on, so stores made before the option existed keep their key.
+            **({"self_contact": True} if self.self_contact else {}),
         }
 
     def content_hash(self, garment: str) -> str:
@@ -520,6 +526,7 @@ def parse_spec(doc: dict, *, source: str = "<dict>", base_dir: str | Path = ".",
     spec.fps = sv.get("fps", 30.0, float, low=0.0, inclusive=False)
     spec.substeps = sv.get("substeps", 10, int, low=1)
     spec.friction = sv.get("friction", True, bool)
+    spec.self_contact = sv.get("self_contact", False, bool)
     solver = {}
     for key, (kind, low, inclusive) in SOLVER_FIELDS.items():
         if key in sv.table:

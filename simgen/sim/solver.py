@@ -6,7 +6,7 @@ One step of length h from (x_t, v_t) solves
     v_{t+1} = (x_{t+1} - x_t) / h,
 
 with Phi = StVK membrane + dihedral bending + gravity + body contact penalty + lagged friction +
-damping dissipation (the terms of :mod:`simgen.sim.energies`). Its stationarity condition is
+damping dissipation (+ optional cloth self-contact repulsion, candidates gathered at each step's start) (the terms of :mod:`simgen.sim.energies`). Its stationarity condition is
 exactly backward Euler, M (v_{t+1} - v_t) / h = f(x_{t+1}). Each Newton iteration assembles the
 gradient g and the PSD-projected Hessian H (values refilled in place in the model's fixed BSR
 pattern), solves H d = g with :class:`~simgen.sim.linear.BlockJacobiPCG` and sets x <- x - alpha d,
@@ -45,9 +45,10 @@ import warp as wp
 
 from simgen.errors import InputError
 from simgen.sim.collider import BodyCollider
-from simgen.sim.energies import (ContactFrame, ContactParams, FrictionParams, GravityParams, eval_bending,
-                                 eval_contact, eval_damping, eval_friction, eval_gravity, eval_inertia,
-                                 eval_membrane, load_kernels, update_contact_frame)
+from simgen.sim.energies import (ContactFrame, ContactParams, FrictionParams, GravityParams, SelfContactParams,
+                                 SelfContactSet, eval_bending, eval_contact, eval_damping, eval_friction,
+                                 eval_gravity, eval_inertia, eval_membrane, eval_self_contact, load_kernels,
+                                 update_contact_frame)
 from simgen.sim.energies._common import module_name, scalar_types
 from simgen.sim.linear import BlockJacobiPCG
 from simgen.sim.model import ClothModel, ClothState
@@ -80,6 +81,8 @@ class SolverConfig:
       ``armijo``) on each instance's incremental potential.
     substeps: equal substeps per :meth:`ImplicitSolver.step` (the body moves linearly across them).
     gravity, contact, friction: the energy parameters; friction=None switches friction off.
+    self_contact: cloth-cloth vertex-triangle repulsion (:class:`SelfContactParams`); None (default)
+      switches it off.
     damping: include the material damping potential (only matters if the material has damping).
     project: after each step push vertices found inside the body onto it (offset
       ``projection_offset`` [m] outside) and remove their inward normal velocity.
@@ -99,6 +102,7 @@ class SolverConfig:
     gravity: GravityParams = field(default_factory=GravityParams)
     contact: ContactParams = field(default_factory=ContactParams)
     friction: FrictionParams | None = field(default_factory=FrictionParams)
+    self_contact: SelfContactParams | None = None
     damping: bool = True
     project: bool = True
     projection_offset: float = 0.0
@@ -281,6 +285,7 @@ class ImplicitSolver:
         self.bad = wp.zeros(ni, dtype=wp.int32, device=dev)
         self.update_norm = wp.zeros(1, dtype=T.scalar, device=dev)
         self.contact_frame = ContactFrame(m)
+        self.self_contact = SelfContactSet(m, cfg.self_contact) if cfg.self_contact is not None else None
         self._frame_valid = False
         self.no_body = wp.zeros(ni, dtype=wp.uint64, device=dev)
         # Round-off allowance on energies that include the arbitrary offset of the gravity potential.
@@ -449,6 +454,8 @@ class ImplicitSolver:
             if cfg.friction is not None:
                 eval_friction(m, x, self.x_start, mesh_ids, self.contact_frame, h, cfg.friction,
                               energy=energy, gradient=gradient, hessian=hessian)
+        if self.self_contact is not None:
+            eval_self_contact(m, x, self.self_contact, energy=energy, gradient=gradient, hessian=hessian)
         if cfg.damping and self.has_damping:
             eval_damping(m, x, self.x_start, h, energy=energy, gradient=gradient, hessian=hessian)
 
@@ -463,6 +470,8 @@ class ImplicitSolver:
         self._counts["substeps"] += 1
         self.bad.zero_()
         wp.launch(k.predict, dim=n, device=dev, inputs=[x, v, m.vertex_pinned, h, self.x_start, self.x_hat])
+        if self.self_contact is not None:
+            self.self_contact.update(self.x_start)
         if cfg.guard:
             self.energy_start.zero_()
             self._eval(x, h, mesh_ids, body, energy=self.energy_start)

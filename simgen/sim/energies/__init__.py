@@ -1,7 +1,8 @@
 """The solver's energy terms, one module each, as Warp kernels with analytic gradients and Hessians.
 
 Term names (shared with the torch losses of ``simgen.physics``): "membrane", "bending", "gravity",
-"inertia", "contact", "friction", "damping". Every ``eval_<term>(model, positions, ..., *,
+"inertia", "contact", "friction", "damping"; "self_contact" (cloth-cloth repulsion) is the
+solver's only. Every ``eval_<term>(model, positions, ..., *,
 energy=None, gradient=None, hessian=None, scale=1.0)`` adds its contribution to whichever outputs
 are given: per-instance energies [J] (num_instances,), the gradient [J/m] (V,) vec3, and the 3x3
 block Hessian (the model's BsrMatrix, or its values) through the model's slot maps. Kernels exist
@@ -19,19 +20,21 @@ from simgen.sim.energies.friction import FrictionParams, eval_friction, friction
 from simgen.sim.energies.gravity import GravityParams, eval_gravity, gravity_kernels
 from simgen.sim.energies.inertia import eval_inertia, inertia_kernels
 from simgen.sim.energies.membrane import eval_membrane, membrane_kernels
+from simgen.sim.energies.self_contact import (SelfContactParams, SelfContactSet, eval_self_contact,
+                                              self_contact_kernels)
 
-TERMS = ("membrane", "bending", "gravity", "inertia", "contact", "friction", "damping")
+TERMS = ("membrane", "bending", "gravity", "inertia", "contact", "friction", "damping", "self_contact")
 
 _FACTORIES = {
     "membrane": membrane_kernels, "bending": bending_kernels, "gravity": gravity_kernels,
     "inertia": inertia_kernels, "contact": contact_kernels, "friction": friction_kernels,
-    "damping": damping_kernels,
+    "damping": damping_kernels, "self_contact": self_contact_kernels,
 }
 
 __all__ = [
     "TERMS", "eval_membrane", "eval_bending", "eval_gravity", "GravityParams", "eval_inertia", "eval_contact",
     "ContactParams", "ContactFrame", "update_contact_frame", "eval_friction", "FrictionParams", "eval_damping",
-    "load_kernels",
+    "eval_self_contact", "SelfContactParams", "SelfContactSet", "load_kernels",
 ]
 
 

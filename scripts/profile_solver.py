@@ -1,0 +1,162 @@
+"""Profile one 30 fps frame of the implicit solver: GPU time per kernel, launches, and graph replay.
+
+The T-shirt drapes onto the open body in rest pose (the static setting of bench_solver.py), N copies
+stepping together. After warm-up frames, ``--frames`` frames run eagerly with the guard deferred
+(exactly the launches a captured frame holds, no host reads) under Warp's activity timing
+(``wp.timing_begin``); every kernel's GPU time is summed per frame and grouped by solver phase.
+The same frame is then captured as a CUDA graph and its replay timed, so the JSON shows how the
+frame time splits into kernel work and what is left (launch gaps, idle).
+
+    python scripts/profile_solver.py --device cuda:0 --batches 1 64 --self-contact both --out profile.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+import warp as wp
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_solver import commit  # noqa: E402
+
+# Kernel name -> solver phase (names as Warp reports them: the Python function name, possibly with a
+# module/hash suffix; matched by prefix).
+PHASES = {
+    "pcg": ("spmv_dot", "update_xr", "control", "count", "update_p", "setup", "start", "start_all", "constrain"),
+    "assembly: membrane": ("membrane",), "assembly: bending": ("bending",), "assembly: inertia": ("inertia",),
+    "assembly: gravity": ("gravity",), "assembly: damping": ("damping",),
+    "body contact + friction (BVH queries)": ("contact", "friction", "frame"),
+    "self-contact": ("shift", "candidates", "repulsion"),
+    "body skinning, BVH refit, projection": ("skin", "refit", "bvh", "project", "pose", "interpolate", "lbs",
+                                            "blend", "set_time", "collider", "compute_", "mesh"),
+    "integrator (predict, line search, guard)": ("predict", "instance_dot", "ls_", "apply_step", "velocity",
+                                                  "check_", "accumulate", "keep_max", "max_abs"),
+}
+
+
+def phase_of(name: str) -> str:
+    base = name.split("(")[0].strip().lower()
+    for phase, prefixes in PHASES.items():
+        for p in prefixes:
+            if base == p or base.startswith(p):
+                return phase
+    return "other"
+
+
+def profile(garment, body, n: int, *, device: str, frames: int, substeps: int, fps: float, self_contact: bool,
+            warmup: int = 3) -> dict:
+    from simgen.sim import BodyCollider, ClothModel, ImplicitSolver, SolverConfig
+    from simgen.sim.energies import SelfContactParams
+
+    model = ClothModel.concatenate([ClothModel.from_garment(garment, device=device)] * n)
+    collider = BodyCollider.from_static(body.v_template, body.faces, num_instances=n, device=device)
+    solver = ImplicitSolver(model, SolverConfig(projection_offset=2.0e-4,
+                                                self_contact=SelfContactParams() if self_contact else None))
+    state = model.state()
+    dt = 1.0 / (fps * substeps)
+
+    def frame(deferred: bool):
+        if deferred:
+            solver.clear_deferred_guard()
+        for _ in range(substeps):
+            solver.step(state, state, collider, dt, deferred_guard=deferred)
+
+    for _ in range(warmup):
+        frame(False)
+    wp.synchronize_device(device)
+    solver.reset_stats()
+    wp.timing_begin(cuda_filter=wp.TIMING_ALL)
+    t0 = time.perf_counter()
+    for _ in range(frames):
+        frame(True)
+    wp.synchronize_device(device)
+    eager_ms = (time.perf_counter() - t0) * 1e3 / frames
+    results = wp.timing_end()
+    cg = solver.stats["cg_per_newton"]
+
+    per_kernel = defaultdict(lambda: [0.0, 0])
+    for r in results:
+        entry = per_kernel[r.name]
+        entry[0] += r.elapsed
+        entry[1] += 1
+    kernels = sorted(({"name": k, "ms_per_frame": v[0] / frames, "launches_per_frame": v[1] / frames,
+                       "phase": phase_of(k)} for k, v in per_kernel.items()), key=lambda e: -e["ms_per_frame"])
+    gpu_ms = sum(e["ms_per_frame"] for e in kernels)
+    phases = defaultdict(lambda: {"ms_per_frame": 0.0, "launches_per_frame": 0.0})
+    for e in kernels:
+        phases[e["phase"]]["ms_per_frame"] += e["ms_per_frame"]
+        phases[e["phase"]]["launches_per_frame"] += e["launches_per_frame"]
+    for p in phases.values():
+        p["share_of_kernel_time"] = p["ms_per_frame"] / gpu_ms if gpu_ms > 0 else 0.0
+
+    graph_ms = None
+    if wp.get_device(device).is_cuda:
+        with wp.ScopedCapture(device=device, force_module_load=False) as capture:
+            frame(True)
+        times = []
+        for f in range(frames + 2):
+            wp.synchronize_device(device)
+            t0 = time.perf_counter()
+            wp.capture_launch(capture.graph)
+            wp.synchronize_device(device)
+            if f >= 2:
+                times.append(time.perf_counter() - t0)
+        graph_ms = float(np.median(times)) * 1e3
+    return {
+        "instances": n, "vertices": model.num_vertices, "self_contact": self_contact, "frames": frames,
+        "substeps": substeps, "cg_per_newton": cg,
+        "kernel_ms_per_frame": gpu_ms, "launches_per_frame": sum(e["launches_per_frame"] for e in kernels),
+        "eager_ms_per_frame": eager_ms, "graph_ms_per_frame": graph_ms,
+        "phases": dict(sorted(phases.items(), key=lambda kv: -kv[1]["ms_per_frame"])),
+        "top_kernels": kernels[:20],
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--device", default=None)
+    parser.add_argument("--garment", default="tshirt")
+    parser.add_argument("--batches", type=int, nargs="+", default=[1, 64])
+    parser.add_argument("--frames", type=int, default=5)
+    parser.add_argument("--substeps", type=int, default=10)
+    parser.add_argument("--fps", type=float, default=30.0)
+    parser.add_argument("--self-contact", choices=["off", "on", "both"], default="off")
+    parser.add_argument("--out", type=Path, default=None)
+    args = parser.parse_args()
+
+    from simgen.body import load
+    from simgen.garment import load_garment
+
+    wp.config.quiet = True
+    wp.init()
+    device = args.device or str(wp.get_preferred_device())
+    body = load("open")
+    garment = load_garment(args.garment, body=body)
+    modes = {"off": [False], "on": [True], "both": [False, True]}[args.self_contact]
+    result = {"benchmark": "solver_profile", "device": wp.get_device(device).name, "commit": commit(),
+              "warp": wp.__version__, "garment": {"name": garment.name, "vertices": garment.num_vertices},
+              "runs": []}
+    for n in args.batches:
+        for sc in modes:
+            row = profile(garment, body, n, device=device, frames=args.frames, substeps=args.substeps,
+                          fps=args.fps, self_contact=sc)
+            result["runs"].append(row)
+            summary = {k: row[k] for k in ("instances", "self_contact", "kernel_ms_per_frame", "launches_per_frame",
+                                           "eager_ms_per_frame", "graph_ms_per_frame", "cg_per_newton")}
+            summary["phases_ms"] = {p: round(v["ms_per_frame"], 3) for p, v in row["phases"].items()}
+            print(json.dumps(summary), flush=True)
+    text = json.dumps(result, indent=2)
+    if args.out is not None:
+        args.out.write_text(text + "\n")
+    else:
+        print(text)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,208 @@
+"""Cloth self-contact: vertex-triangle repulsion within a thickness, with gradient and PSD Hessian.
+
+For a cloth vertex p and a triangle (a, b, c) of the same instance that does not contain p, with
+d = |p - q| the distance to the triangle's closest point q = w_a a + w_b b + w_c c:
+
+    E = k * max(thickness - d, 0)^p,    n = (p - q) / d,
+    dE/dp = E'(d) n,   dE/da = -w_a E'(d) n  (and b, c alike),   E'(d) = -k p (thickness - d)^(p-1),
+
+the gradient being exact (the closest point's own motion is orthogonal to n). The Hessian is the
+Gauss-Newton k p (p-1) (thickness - d)^(p-2) J^T n n^T J with J = [I, -w_a I, -w_b I, -w_c I],
+of which only the four diagonal blocks are kept: the off-diagonal ones couple vertices that are
+not neighbours in the mesh, outside the solver's fixed sparsity pattern. What is dropped makes the
+Newton direction less stiff between the pair, never indefinite (each kept block is PSD), and the
+guard still checks every step against the true energy. It is the same penalty shape as the body
+contact (:mod:`.contact`), so its parameters read alike.
+
+Candidates: once per substep (at its start, :meth:`SelfContactSet.update`), every vertex collects
+up to ``max_candidates`` triangles whose closest point lies within ``search_radius`` (a BVH box
+query). The energy then re-evaluates the exact distance to those triangles at every Newton
+iterate; a pair that only comes within the thickness during the substep is seen at the next one,
+so search_radius must exceed the thickness by the distance a vertex travels in one substep. One
+BVH serves all instances: each instance's vertices are shifted by ``INSTANCE_SPACING`` along x
+before the refit, so instances that overlap in space (same body, different shapes) never see each
+other. Triangles incident to the vertex are skipped; triangles of its 1-ring neighbours are not,
+so the mesh's edges must be several thicknesses long (they are ~2 cm on the library garments).
+Vertex-triangle only: edge-edge crossings of two coarse triangles are not resolved.
+"""
+
+import functools
+import math
+from dataclasses import dataclass
+from types import SimpleNamespace
+
+import numpy as np
+import warp as wp
+
+from simgen.errors import InputError
+from simgen.sim.energies._common import module_name, resolve_outputs, scalar_types
+from simgen.sim.energies.contact import contact_funcs
+
+__all__ = ["SelfContactParams", "SelfContactSet", "eval_self_contact", "self_contact_kernels", "INSTANCE_SPACING"]
+
+# [m] shift between instances in the broad-phase BVH; far beyond any garment's size.
+INSTANCE_SPACING = 100.0
+
+
+@dataclass(frozen=True)
+class SelfContactParams:
+    """Cloth-cloth repulsion k * max(thickness - d, 0)^power between a vertex and a triangle.
+
+    thickness [m]: distance below which the repulsion acts (two layers of cloth stay about this far
+      apart; default 2 mm, the body contact margin).
+    stiffness [J/m^power], power [-] (>= 2): as the body contact penalty (:class:`ContactParams`).
+    search_radius [m]: candidate triangles are gathered within this distance at each substep's start;
+      it must exceed the thickness by a substep's travel (default 1 cm: 2.4 m/s at 1/300 s).
+    max_candidates: triangles kept per vertex (the first found within the radius).
+    """
+
+    thickness: float = 2.0e-3
+    stiffness: float = 1.0e4
+    power: float = 3.0
+    search_radius: float = 1.0e-2
+    max_candidates: int = 16
+
+    def __post_init__(self) -> None:
+        for name in ("thickness", "stiffness", "power", "search_radius"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
+                raise InputError(f"self-contact {name} must be a finite number > 0, got {v!r}")
+            object.__setattr__(self, name, float(v))
+        if self.power < 2.0:
+            raise InputError(f"self-contact power must be >= 2 (C1 energy, bounded Hessian), got {self.power!r}")
+        if self.search_radius <= self.thickness:
+            raise InputError(f"self-contact search_radius ({self.search_radius}) must exceed the thickness "
+                             f"({self.thickness})")
+        k = self.max_candidates
+        if isinstance(k, bool) or not isinstance(k, int) or k < 1:
+            raise InputError(f"self-contact max_candidates must be an integer >= 1, got {k!r}")
+
+
+@functools.cache
+def self_contact_kernels(scalar) -> SimpleNamespace:
+    """Kernels for one scalar type: ``.shift`` (broad-phase points), ``.candidates`` (per-vertex
+    triangle lists) and ``.repulsion`` (energy/gradient/Hessian), one thread per vertex."""
+    T = scalar_types(scalar)
+    vec3, mat33 = T.vec3, T.mat33
+    closest_point_triangle = contact_funcs(scalar).closest_point_triangle
+    mod = module_name(__name__, scalar)
+    tiny = scalar(1.0e-12)
+
+    @wp.kernel(enable_backward=False, module=mod)
+    def shift(x: wp.array(dtype=vec3), vertex_instance: wp.array(dtype=wp.int32), spacing: float,
+              points: wp.array(dtype=wp.vec3)):
+        i = wp.tid()
+        points[i] = wp.vec3(x[i]) + wp.vec3(spacing * float(vertex_instance[i]), 0.0, 0.0)
+
+    @wp.kernel(enable_backward=False, module=mod)
+    def candidates(x: wp.array(dtype=vec3), vertex_instance: wp.array(dtype=wp.int32),
+                   triangles: wp.array(dtype=wp.int32, ndim=2), mesh: wp.uint64, spacing: float,
+                   radius: scalar, max_candidates: int, candidate: wp.array(dtype=wp.int32, ndim=2),
+                   count: wp.array(dtype=wp.int32)):
+        i = wp.tid()
+        p = x[i]
+        ps = wp.vec3(p) + wp.vec3(spacing * float(vertex_instance[i]), 0.0, 0.0)
+        r = float(radius)
+        query = wp.mesh_query_aabb(mesh, ps - wp.vec3(r, r, r), ps + wp.vec3(r, r, r))
+        face = int(0)
+        n = int(0)
+        while wp.mesh_query_aabb_next(query, face):
+            if n >= max_candidates:
+                break
+            ia = triangles[face, 0]
+            ib = triangles[face, 1]
+            ic = triangles[face, 2]
+            if ia == i or ib == i or ic == i:
+                continue
+            q, bary, interior = closest_point_triangle(p, x[ia], x[ib], x[ic])
+            if wp.length(p - q) < radius:
+                candidate[i, n] = face
+                n += 1
+        count[i] = n
+
+    @wp.kernel(enable_backward=False, module=mod)
+    def repulsion(x: wp.array(dtype=vec3), vertex_instance: wp.array(dtype=wp.int32),
+                  triangles: wp.array(dtype=wp.int32, ndim=2), candidate: wp.array(dtype=wp.int32, ndim=2),
+                  count: wp.array(dtype=wp.int32), diag_slots: wp.array(dtype=wp.int32),
+                  thickness: scalar, stiffness: scalar, power: scalar,
+                  want_energy: int, want_grad: int, want_hess: int,
+                  energy: wp.array(dtype=scalar), grad: wp.array(dtype=vec3), hess: wp.array(dtype=mat33)):
+        i = wp.tid()
+        p = x[i]
+        for c in range(count[i]):
+            face = candidate[i, c]
+            ia = triangles[face, 0]
+            ib = triangles[face, 1]
+            ic = triangles[face, 2]
+            q, w, interior = closest_point_triangle(p, x[ia], x[ib], x[ic])
+            diff = p - q
+            d = wp.length(diff)
+            if d >= thickness or d <= tiny:
+                continue
+            n = diff / d
+            pen = thickness - d
+            if want_energy != 0:
+                wp.atomic_add(energy, vertex_instance[i], stiffness * wp.pow(pen, power))
+            if want_grad != 0:
+                f = (-stiffness * power * wp.pow(pen, power - scalar(1.0))) * n  # dE/dp
+                wp.atomic_add(grad, i, f)
+                wp.atomic_add(grad, ia, -w[0] * f)
+                wp.atomic_add(grad, ib, -w[1] * f)
+                wp.atomic_add(grad, ic, -w[2] * f)
+            if want_hess != 0:
+                nn = (stiffness * power * (power - scalar(1.0)) * wp.pow(pen, power - scalar(2.0))) * wp.outer(n, n)
+                wp.atomic_add(hess, diag_slots[i], nn)
+                wp.atomic_add(hess, diag_slots[ia], (w[0] * w[0]) * nn)
+                wp.atomic_add(hess, diag_slots[ib], (w[1] * w[1]) * nn)
+                wp.atomic_add(hess, diag_slots[ic], (w[2] * w[2]) * nn)
+
+    return SimpleNamespace(shift=shift, candidates=candidates, repulsion=repulsion)
+
+
+class SelfContactSet:
+    """Broad-phase BVH and per-vertex candidate triangles of one model (device buffers).
+
+    candidate: (V, max_candidates) int32 global triangle indices; count: (V,) int32 valid entries.
+    :meth:`update` refits the BVH at the given positions and refills both (capturable: kernel
+    launches and a BVH refit, no host reads).
+    """
+
+    def __init__(self, model, params: SelfContactParams) -> None:
+        self.model = model
+        self.params = params
+        dev, n = model.device, model.num_vertices
+        self.points = wp.zeros(n, dtype=wp.vec3, device=dev)
+        self.triangles2d = model.triangles
+        flat = wp.array(np.asarray(model.host.triangles, dtype=np.int32).reshape(-1), dtype=wp.int32, device=dev)
+        self._indices = flat  # the BVH keeps a reference; it must outlive the mesh
+        self.mesh = wp.Mesh(points=self.points, indices=flat)
+        self.candidate = wp.zeros((n, params.max_candidates), dtype=wp.int32, device=dev)
+        self.count = wp.zeros(n, dtype=wp.int32, device=dev)
+
+    def update(self, positions) -> None:
+        """Gather candidate triangles for ``positions`` [m], (V,) vec3 (a substep's start)."""
+        m, p = self.model, self.params
+        k = self_contact_kernels(m.scalar)
+        wp.launch(k.shift, dim=m.num_vertices, device=m.device,
+                  inputs=[positions, m.vertex_instance, INSTANCE_SPACING, self.points])
+        self.mesh.refit()
+        wp.launch(k.candidates, dim=m.num_vertices, device=m.device, inputs=[
+            positions, m.vertex_instance, self.triangles2d, self.mesh.id, INSTANCE_SPACING, p.search_radius,
+            p.max_candidates, self.candidate, self.count])
+
+
+def eval_self_contact(model, positions, contact_set: SelfContactSet, *, energy=None, gradient=None, hessian=None,
+                      scale: float = 1.0) -> None:
+    """Accumulate the vertex-triangle repulsion over the candidates of ``contact_set``.
+
+    positions [m], (V,) vec3. Outputs (added to, optional): energy [J] per instance; gradient [J/m]
+    (V,) vec3; hessian (diagonal blocks, PSD; the model's BsrMatrix or its values). scale
+    multiplies all three.
+    """
+    we, wg, wh, e, g, h = resolve_outputs(energy, gradient, hessian)
+    if not (we or wg or wh):
+        return
+    p = contact_set.params
+    wp.launch(self_contact_kernels(model.scalar).repulsion, dim=model.num_vertices, device=model.device, inputs=[
+        positions, model.vertex_instance, contact_set.triangles2d, contact_set.candidate, contact_set.count,
+        model.diag_slots, p.thickness, p.stiffness * scale, p.power, we, wg, wh, e, g, h])
