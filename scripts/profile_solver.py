@@ -150,7 +150,11 @@ def main() -> None:
             summary = {k: row[k] for k in ("instances", "self_contact", "kernel_ms_per_frame", "launches_per_frame",
                                            "eager_ms_per_frame", "graph_ms_per_frame", "cg_per_newton")}
             summary["phases_ms"] = {p: round(v["ms_per_frame"], 3) for p, v in row["phases"].items()}
+            summary["top"] = [(e["name"][:40], round(e["ms_per_frame"], 2), e["launches_per_frame"])
+                              for e in row["top_kernels"][:10]]
             print(json.dumps(summary), flush=True)
+            if args.out is not None:  # after every run, so a cut run keeps what it measured
+                args.out.write_text(json.dumps(result, indent=2) + "\n")
     text = json.dumps(result, indent=2)
     if args.out is not None:
         args.out.write_text(text + "\n")

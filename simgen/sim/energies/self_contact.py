@@ -171,7 +171,12 @@ class SelfContactSet:
         self.model = model
         self.params = params
         dev, n = model.device, model.num_vertices
-        self.points = wp.zeros(n, dtype=wp.vec3, device=dev)
+        # The BVH's tree is built once, here, and only refit later: build it on the (shifted) rest
+        # shape so its topology follows the garment (a tree built on coincident points would make
+        # every box overlap every query).
+        shift = INSTANCE_SPACING * np.asarray(model.host.vertex_instance, dtype=np.float64)
+        rest = np.asarray(model.host.rest_positions, dtype=np.float64) + np.outer(shift, [1.0, 0.0, 0.0])
+        self.points = wp.array(rest.astype(np.float32), dtype=wp.vec3, device=dev)
         self.triangles2d = model.triangles
         flat = wp.array(np.asarray(model.host.triangles, dtype=np.int32).reshape(-1), dtype=wp.int32, device=dev)
         self._indices = flat  # the BVH keeps a reference; it must outlive the mesh
