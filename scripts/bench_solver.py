@@ -225,6 +225,8 @@ def main() -> None:
     def emit(row):
         result["runs"].append(row)
         print(json.dumps(row), flush=True)
+        if args.out is not None:  # after every run, so a cut benchmark keeps what it measured
+            args.out.write_text(json.dumps(result, indent=2) + "\n")
 
     contact_modes = {"off": [False], "on": [True], "both": [False, True]}[args.self_contact]
     for n in args.batches:
