@@ -87,6 +87,39 @@ def test_block_jacobi_pcg_matches_dense_solve_with_pins():
     assert 1 <= pcg.iterations() < 300 and pcg.residual_ratio() <= 1e-12
 
 
+@pytest.mark.parametrize("dynamic", [True, False])
+def test_batched_pcg_solves_each_instance_and_stops_at_max_iterations(dynamic):
+    """Instances of unequal sizes (smaller and larger than a reduction block, an instance boundary
+    inside a block) each match their own dense solve; the loop stops at max_iterations."""
+    builder = ClothModelBuilder()
+    rng = np.random.default_rng(2)
+    for nu, size in ((6, 0.1), (21, 0.3), (4, 0.05)):
+        v, f = grid(nu, nu, size, size)
+        builder.add_instance(v + 0.005 * rng.normal(size=v.shape), f, "cotton", pinned=[0])
+    model = builder.finalize(DEVICE, dtype=wp.float64)
+    x = wp.array(model.host.rest_positions, dtype=wp.vec3d, device=DEVICE)
+    H = model.new_hessian()
+    eval_membrane(model, x, hessian=H)
+    eval_inertia(model, x, x, 1.0e-2, hessian=H)
+    b = rng.normal(size=(model.num_vertices, 3))
+    out = model.new_gradient()
+    pcg = BlockJacobiPCG(model, max_iterations=500, tolerance=1e-12, dynamic=dynamic)
+    pcg.apply_constraints(H)
+    pcg.solve(H, wp.array(b, dtype=wp.vec3d, device=DEVICE), out)
+    n = model.num_vertices
+    A = sp.bsr_matrix((H.values.numpy(), model.pattern.columns, model.pattern.offsets), shape=(3 * n, 3 * n))
+    b[model.host.vertex_pinned.astype(bool)] = 0.0
+    ref = sp.linalg.spsolve(A.tocsc(), b.ravel()).reshape(-1, 3)
+    got = out.numpy()
+    for k in range(model.num_instances):
+        sl = model.instance_slice(k)
+        assert np.abs(got[sl] - ref[sl]).max() <= 1e-9 * np.abs(ref[sl]).max()
+    assert 1 <= pcg.iterations() < 500 and pcg.residual_ratio() <= 1e-12
+    capped = BlockJacobiPCG(model, max_iterations=3, tolerance=1e-12, dynamic=dynamic)
+    capped.solve(H, wp.array(b, dtype=wp.vec3d, device=DEVICE), out)
+    assert capped.iterations() == 3 and capped.residual_ratio() > 1e-12
+
+
 # -- free fall ------------------------------------------------------------------------------------
 
 def test_free_fall_matches_backward_euler_closed_form():

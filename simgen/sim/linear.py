@@ -8,12 +8,14 @@ Pinned (kinematic) vertices are removed from the system in place before the solv
 columns are zeroed, their diagonal block set to the identity and their right-hand side to zero,
 so their update is exactly 0 and the free vertices do not feel them through H.
 
-No host synchronisation happens inside :meth:`BlockJacobiPCG.solve`: it launches a fixed
-``max_iterations`` sequence of kernels and each kernel first reads an on-device ``done`` flag, set
-when the preconditioned residual r.z has fallen below tol^2 times its initial value, and returns at
-once after that. The sequence is therefore capturable in a CUDA graph; the iteration count and
-final residual stay on the device until :meth:`BlockJacobiPCG.iterations` /
-:meth:`BlockJacobiPCG.residual_ratio` read them.
+The iteration loop is ``warp.capture_while`` on an on-device "running" flag, cleared once every
+instance's preconditioned residual r.z has fallen below tol^2 times its initial value or after
+``max_iterations``: inside a CUDA graph it is a conditional node, so a captured solve launches only
+the iterations it needs and reads nothing back; outside a graph it reads the flag once per
+iteration. With ``dynamic=False`` the solve launches a fixed ``max_iterations`` sequence instead,
+every kernel returning at once after convergence. The iteration count and final residual stay on
+the device until :meth:`BlockJacobiPCG.iterations` / :meth:`BlockJacobiPCG.residual_ratio` read
+them.
 
 Batched models: the Hessian is block diagonal over instances, so every instance runs its own CG
 (its own alpha, beta, residual and stopping test) inside the same launches; an instance that has
@@ -21,9 +23,12 @@ converged, or whose right-hand side is not finite, stops without holding up or p
 others, and every launch returns at once when all instances are done.
 
 Per iteration: (1) q = H p fused with the per-instance reduction p.q, (2) x += alpha p,
-r -= alpha q, z = M^-1 r fused with r.z, (3) one thread per instance: beta, convergence test,
-(4) one thread: iteration count and the all-done flag, (5) p = z + beta p. Reductions are atomic
-adds into one scalar per instance.
+r -= alpha q, z = M^-1 r fused with r.z, (3) one thread: each instance's beta and convergence test,
+the iteration count and the all-done flag, (4) p = z + beta p. Reductions are segmented block
+reductions: a block of ``REDUCE_BLOCK`` vertices sums its first instance's share in a tile and adds
+it with one atomic (vertices of a second instance in the block, at an instance boundary, add
+theirs directly). Per-vertex atomics into one scalar per instance serialise on that address: at
+64 instances they took 63% of the frame (BENCHMARKS.md).
 """
 
 
@@ -34,7 +39,11 @@ import warp as wp
 
 from simgen.sim.energies._common import module_name, scalar_types
 
-__all__ = ["BlockJacobiPCG", "pcg_kernels"]
+__all__ = ["BlockJacobiPCG", "pcg_kernels", "REDUCE_BLOCK"]
+
+# Threads per block of the reducing kernels on CUDA (Warp runs tile kernels one thread per block on
+# the CPU, where the same code reduces blocks of one).
+REDUCE_BLOCK = 256
 
 
 @functools.cache
@@ -62,6 +71,23 @@ def pcg_kernels(scalar) -> SimpleNamespace:
             else:
                 values[k] = mat33()
 
+    @wp.func
+    def block_add(out: wp.array(dtype=scalar), vertex_instance: wp.array(dtype=wp.int32), block: int, lane: int,
+                  i: int, n: int, value: scalar):
+        # Segmented reduction of one value per thread (0 for threads past n) into out[instance]:
+        # the block's first instance through a tile sum and one atomic, any other directly.
+        bd = wp.block_dim()
+        first = vertex_instance[wp.min(block * bd, n - 1)]
+        own = zero
+        if i < n:
+            if vertex_instance[i] == first:
+                own = value
+            else:
+                wp.atomic_add(out, vertex_instance[i], value)
+        total = wp.tile_sum(wp.tile(own))
+        if lane == 0:
+            wp.atomic_add(out, first, total[0])
+
     @wp.kernel(enable_backward=False, module=mod)
     def setup(
         values: wp.array(dtype=mat33),
@@ -75,9 +101,14 @@ def pcg_kernels(scalar) -> SimpleNamespace:
         z: wp.array(dtype=vec3),
         p: wp.array(dtype=vec3),
         rz: wp.array(dtype=scalar),
+        n: int,
     ):
         # Start from x = 0: r = b (zero at pinned vertices), z = D^-1 r, p = z, rz = r.z per instance.
-        i = wp.tid()
+        block, lane = wp.tid()
+        i = block * wp.block_dim() + lane
+        if i >= n:
+            block_add(rz, vertex_instance, block, lane, i, n, zero)
+            return
         d = values[diag_slots[i]]
         dinv = wp.identity(n=3, dtype=scalar)
         if pinned[i] == 0:
@@ -96,7 +127,7 @@ def pcg_kernels(scalar) -> SimpleNamespace:
         zi = dinv * b
         z[i] = zi
         p[i] = zi
-        wp.atomic_add(rz, vertex_instance[i], wp.dot(b, zi))
+        block_add(rz, vertex_instance, block, lane, i, n, wp.dot(b, zi))
 
     @wp.kernel(enable_backward=False, module=mod)
     def start(
@@ -116,13 +147,14 @@ def pcg_kernels(scalar) -> SimpleNamespace:
 
     @wp.kernel(enable_backward=False, module=mod)
     def start_all(done: wp.array(dtype=wp.int32), num_instances: int, iterations: wp.array(dtype=wp.int32),
-                  all_done: wp.array(dtype=wp.int32)):
+                  all_done: wp.array(dtype=wp.int32), running: wp.array(dtype=wp.int32)):
         iterations[0] = 0
         flag = int(1)
         for k in range(num_instances):
             if done[k] == 0:
                 flag = 0
         all_done[0] = flag
+        running[0] = 1 - flag
 
     @wp.kernel(enable_backward=False, module=mod)
     def spmv_dot(
@@ -135,18 +167,21 @@ def pcg_kernels(scalar) -> SimpleNamespace:
         pq: wp.array(dtype=scalar),
         done: wp.array(dtype=wp.int32),
         all_done: wp.array(dtype=wp.int32),
+        n: int,
     ):
-        i = wp.tid()
         if all_done[0] != 0:
-            return
-        inst = vertex_instance[i]
-        if done[inst] != 0:
-            return
-        acc = vec3()
-        for k in range(offsets[i], offsets[i + 1]):
-            acc += values[k] * p[columns[k]]
-        q[i] = acc
-        wp.atomic_add(pq, inst, wp.dot(p[i], acc))
+            return  # uniform over the block, so no thread misses the tile sum below
+        block, lane = wp.tid()
+        i = block * wp.block_dim() + lane
+        value = zero
+        if i < n:
+            if done[vertex_instance[i]] == 0:
+                acc = vec3()
+                for k in range(offsets[i], offsets[i + 1]):
+                    acc += values[k] * p[columns[k]]
+                q[i] = acc
+                value = wp.dot(p[i], acc)
+        block_add(pq, vertex_instance, block, lane, i, n, value)
 
     @wp.kernel(enable_backward=False, module=mod)
     def update_xr(
@@ -162,22 +197,26 @@ def pcg_kernels(scalar) -> SimpleNamespace:
         rz_new: wp.array(dtype=scalar),
         done: wp.array(dtype=wp.int32),
         all_done: wp.array(dtype=wp.int32),
+        n: int,
     ):
-        i = wp.tid()
         if all_done[0] != 0:
             return
-        inst = vertex_instance[i]
-        if done[inst] != 0:
-            return
-        alpha = zero
-        if pq[inst] > zero:
-            alpha = rz[inst] / pq[inst]
-        x[i] = x[i] + alpha * p[i]
-        ri = r[i] - alpha * q[i]
-        r[i] = ri
-        zi = inv_diag[i] * ri
-        z[i] = zi
-        wp.atomic_add(rz_new, inst, wp.dot(ri, zi))
+        block, lane = wp.tid()
+        i = block * wp.block_dim() + lane
+        value = zero
+        if i < n:
+            inst = vertex_instance[i]
+            if done[inst] == 0:
+                alpha = zero
+                if pq[inst] > zero:
+                    alpha = rz[inst] / pq[inst]
+                x[i] = x[i] + alpha * p[i]
+                ri = r[i] - alpha * q[i]
+                r[i] = ri
+                zi = inv_diag[i] * ri
+                z[i] = zi
+                value = wp.dot(ri, zi)
+        block_add(rz_new, vertex_instance, block, lane, i, n, value)
 
     @wp.kernel(enable_backward=False, module=mod)
     def control(
@@ -187,36 +226,40 @@ def pcg_kernels(scalar) -> SimpleNamespace:
         rz_new: wp.array(dtype=scalar),
         beta: wp.array(dtype=scalar),
         tol2: scalar,
+        num_instances: int,
+        max_iterations: int,
         done: wp.array(dtype=wp.int32),
+        iterations: wp.array(dtype=wp.int32),
+        all_done: wp.array(dtype=wp.int32),
+        running: wp.array(dtype=wp.int32),
     ):
-        # One thread per instance: each instance's CG runs and stops on its own residual.
-        k = wp.tid()
-        if done[k] != 0:
-            return
-        # A non-positive (or non-finite) curvature p.Hp means H is not SPD along p (should not
-        # happen with PSD-projected terms plus the mass); stop rather than divide by it.
-        if not (pq[k] > zero) or rz_new[k] <= tol2 * rz0[k]:
-            done[k] = 1
-        b = zero
-        if rz[k] > zero:
-            b = rz_new[k] / rz[k]
-        beta[k] = b
-        rz[k] = rz_new[k]
-        pq[k] = zero
-        rz_new[k] = zero
-
-    @wp.kernel(enable_backward=False, module=mod)
-    def count(done: wp.array(dtype=wp.int32), num_instances: int, iterations: wp.array(dtype=wp.int32),
-              all_done: wp.array(dtype=wp.int32)):
-        # iterations = the most any instance ran; all_done lets every later launch return at once.
+        # One thread: each instance's CG runs and stops on its own residual; iterations = the most
+        # any instance ran; all_done lets every later launch return at once; running (the loop's
+        # condition) also stops at max_iterations.
         if all_done[0] != 0:
+            running[0] = 0
             return
         iterations[0] = iterations[0] + 1
         flag = int(1)
         for k in range(num_instances):
             if done[k] == 0:
-                flag = 0
+                # A non-positive (or non-finite) curvature p.Hp means H is not SPD along p (should
+                # not happen with PSD-projected terms plus the mass); stop rather than divide by it.
+                if not (pq[k] > zero) or rz_new[k] <= tol2 * rz0[k]:
+                    done[k] = 1
+                b = zero
+                if rz[k] > zero:
+                    b = rz_new[k] / rz[k]
+                beta[k] = b
+                rz[k] = rz_new[k]
+                pq[k] = zero
+                rz_new[k] = zero
+                if done[k] == 0:
+                    flag = 0
         all_done[0] = flag
+        running[0] = 0
+        if flag == 0 and iterations[0] < max_iterations:
+            running[0] = 1
 
     @wp.kernel(enable_backward=False, module=mod)
     def update_p(
@@ -236,21 +279,22 @@ def pcg_kernels(scalar) -> SimpleNamespace:
         p[i] = z[i] + beta[inst] * p[i]
 
     return SimpleNamespace(constrain=constrain, setup=setup, start=start, start_all=start_all, spmv_dot=spmv_dot,
-                           update_xr=update_xr, control=control, count=count, update_p=update_p)
+                           update_xr=update_xr, control=control, update_p=update_p)
 
 
 class BlockJacobiPCG:
     """Preallocated block-Jacobi PCG for one :class:`~simgen.sim.model.ClothModel`.
 
     model: the cloth model (its BSR pattern, diagonal slots and pinned flags are used).
-    max_iterations: the fixed number of iterations launched per solve (work stops on the device
-      once converged). tolerance: relative tolerance on the preconditioned residual,
-      sqrt(r.M^-1 r / r0.M^-1 r0) <= tolerance.
+    max_iterations: the most iterations per solve. tolerance: relative tolerance on the
+      preconditioned residual, sqrt(r.M^-1 r / r0.M^-1 r0) <= tolerance.
+    dynamic: loop with ``warp.capture_while`` until converged (a conditional node in a CUDA graph);
+      False launches a fixed ``max_iterations`` sequence (work stops on the device once converged).
 
     All arrays are allocated here, so :meth:`solve` allocates nothing (graph-capture safe).
     """
 
-    def __init__(self, model, *, max_iterations: int = 50, tolerance: float = 1.0e-3) -> None:
+    def __init__(self, model, *, max_iterations: int = 50, tolerance: float = 1.0e-3, dynamic: bool = True) -> None:
         if int(max_iterations) < 1:
             raise ValueError(f"max_iterations must be >= 1, got {max_iterations}")
         if not tolerance >= 0:
@@ -258,6 +302,7 @@ class BlockJacobiPCG:
         self.model = model
         self.max_iterations = int(max_iterations)
         self.tolerance = float(tolerance)
+        self.dynamic = bool(dynamic)
         self.kernels = pcg_kernels(model.scalar)
         T = scalar_types(model.scalar)
         n, dev = model.num_vertices, model.device
@@ -277,6 +322,9 @@ class BlockJacobiPCG:
         self._done = wp.zeros(ni, dtype=wp.int32, device=dev)
         self._all_done = wp.zeros(1, dtype=wp.int32, device=dev)
         self._iterations = wp.zeros(1, dtype=wp.int32, device=dev)
+        self._running = wp.zeros(1, dtype=wp.int32, device=dev)
+        self._block = REDUCE_BLOCK if wp.get_device(dev).is_cuda else 1
+        self._blocks = (n + self._block - 1) // self._block
 
     def load(self) -> None:
         """Compile (or fetch from Warp's cache) the kernels; call before capturing a graph."""
@@ -303,22 +351,30 @@ class BlockJacobiPCG:
         values = getattr(hessian, "values", hessian)
         ni, vi = m.num_instances, m.vertex_instance
         self._rz.zero_()
-        wp.launch(k.setup, dim=n, device=dev, inputs=[
-            values, m.diag_slots, m.vertex_pinned, vi, rhs, x, self.inv_diag, self.r, self.z, self.p, self._rz])
+        wp.launch_tiled(k.setup, dim=[self._blocks], block_dim=self._block, device=dev, inputs=[
+            values, m.diag_slots, m.vertex_pinned, vi, rhs, x, self.inv_diag, self.r, self.z, self.p, self._rz, n])
         wp.launch(k.start, dim=ni, device=dev, inputs=[self._rz, self._rz0, self._done, self._pq, self._rz_new])
-        wp.launch(k.start_all, dim=1, device=dev, inputs=[self._done, ni, self._iterations, self._all_done])
-        tol2 = self.tolerance * self.tolerance
-        for _ in range(self.max_iterations):
-            wp.launch(k.spmv_dot, dim=n, device=dev, inputs=[
-                m.bsr_offsets, m.bsr_columns, values, vi, self.p, self.q, self._pq, self._done, self._all_done])
-            wp.launch(k.update_xr, dim=n, device=dev, inputs=[
-                vi, self.p, self.q, self.inv_diag, self._rz, self._pq, x, self.r, self.z, self._rz_new, self._done,
-                self._all_done])
-            wp.launch(k.control, dim=ni, device=dev, inputs=[
-                self._rz, self._rz0, self._pq, self._rz_new, self._beta, tol2, self._done])
-            wp.launch(k.count, dim=1, device=dev, inputs=[self._done, ni, self._iterations, self._all_done])
-            wp.launch(k.update_p, dim=n, device=dev, inputs=[vi, self.z, self._beta, self.p, self._done,
-                                                             self._all_done])
+        wp.launch(k.start_all, dim=1, device=dev,
+                  inputs=[self._done, ni, self._iterations, self._all_done, self._running])
+        if self.dynamic:
+            wp.capture_while(self._running, self._iteration, values=values, x=x)
+        else:
+            for _ in range(self.max_iterations):
+                self._iteration(values=values, x=x)
+
+    def _iteration(self, values, x) -> None:
+        m, k = self.model, self.kernels
+        n, dev, vi = m.num_vertices, m.device, m.vertex_instance
+        wp.launch_tiled(k.spmv_dot, dim=[self._blocks], block_dim=self._block, device=dev, inputs=[
+            m.bsr_offsets, m.bsr_columns, values, vi, self.p, self.q, self._pq, self._done, self._all_done, n])
+        wp.launch_tiled(k.update_xr, dim=[self._blocks], block_dim=self._block, device=dev, inputs=[
+            vi, self.p, self.q, self.inv_diag, self._rz, self._pq, x, self.r, self.z, self._rz_new, self._done,
+            self._all_done, n])
+        wp.launch(k.control, dim=1, device=dev, inputs=[
+            self._rz, self._rz0, self._pq, self._rz_new, self._beta, self.tolerance * self.tolerance,
+            m.num_instances, self.max_iterations, self._done, self._iterations, self._all_done, self._running])
+        wp.launch(k.update_p, dim=n, device=dev, inputs=[vi, self.z, self._beta, self.p, self._done,
+                                                         self._all_done])
 
     @property
     def iteration_counter(self) -> wp.array:
