@@ -75,7 +75,8 @@ def pcg_kernels(scalar) -> SimpleNamespace:
     def block_add(out: wp.array(dtype=scalar), vertex_instance: wp.array(dtype=wp.int32), block: int, lane: int,
                   i: int, n: int, value: scalar):
         # Segmented reduction of one value per thread (0 for threads past n) into out[instance]:
-        # the block's first instance through a tile sum and one atomic, any other directly.
+        # the block's first instance through a tile sum and one atomic, any other directly. Every
+        # thread of the block must reach the same call (the tile sum is a block-wide barrier).
         bd = wp.block_dim()
         first = vertex_instance[wp.min(block * bd, n - 1)]
         own = zero
@@ -106,28 +107,29 @@ def pcg_kernels(scalar) -> SimpleNamespace:
         # Start from x = 0: r = b (zero at pinned vertices), z = D^-1 r, p = z, rz = r.z per instance.
         block, lane = wp.tid()
         i = block * wp.block_dim() + lane
-        if i >= n:
-            block_add(rz, vertex_instance, block, lane, i, n, zero)
-            return
-        d = values[diag_slots[i]]
-        dinv = wp.identity(n=3, dtype=scalar)
-        if pinned[i] == 0:
-            # The assembled diagonal blocks are SPD (mass + PSD-projected terms); a block that is
-            # numerically singular (zero mass would be a model error) falls back to the identity.
-            det = wp.determinant(d)
-            scale = wp.trace(d)
-            if det > scalar(1.0e-30) * scale * scale * scale and scale > zero:
-                dinv = wp.inverse(d)
-        inv_diag[i] = dinv
-        b = rhs[i]
-        if pinned[i] != 0:
-            b = vec3()
-        x[i] = vec3()
-        r[i] = b
-        zi = dinv * b
-        z[i] = zi
-        p[i] = zi
-        block_add(rz, vertex_instance, block, lane, i, n, wp.dot(b, zi))
+        value = zero
+        if i < n:
+            d = values[diag_slots[i]]
+            dinv = wp.identity(n=3, dtype=scalar)
+            if pinned[i] == 0:
+                # The assembled diagonal blocks are SPD (mass + PSD-projected terms); a block that is
+                # numerically singular (zero mass would be a model error) falls back to the identity.
+                det = wp.determinant(d)
+                scale = wp.trace(d)
+                if det > scalar(1.0e-30) * scale * scale * scale and scale > zero:
+                    dinv = wp.inverse(d)
+            inv_diag[i] = dinv
+            b = rhs[i]
+            if pinned[i] != 0:
+                b = vec3()
+            x[i] = vec3()
+            r[i] = b
+            zi = dinv * b
+            z[i] = zi
+            p[i] = zi
+            value = wp.dot(b, zi)
+        # One call site for every thread of the block: the tile sum synchronises the block.
+        block_add(rz, vertex_instance, block, lane, i, n, value)
 
     @wp.kernel(enable_backward=False, module=mod)
     def start(
