@@ -25,8 +25,9 @@ inside its body onto the surface and removes its inward normal velocity, so no o
 inside. Friction's contact set (normal force, normal, closest body point) is lagged: taken at the
 end of the previous substep (after the projection), where cloth and body are at the same time.
 
-Host synchronisation: the Newton/PCG/line-search sequence itself launches a fixed number of kernels
-and reads nothing back (capturable as a CUDA graph). The guard (one int per substep),
+Host synchronisation: the Newton/PCG/line-search sequence reads nothing back inside a CUDA graph
+(PCG's loop is a conditional graph node there; run eagerly it reads its on-device "running" flag
+once per CG iteration). The guard (one int per substep),
 ``newton_tolerance`` > 0 (one float per Newton iteration) and :attr:`ImplicitSolver.stats` read
 from the device. For capture, ``step(..., deferred_guard=True)`` runs the guard's checks without
 reading them: each instance's failure bits accumulate in :attr:`ImplicitSolver.deferred_bad`
