@@ -413,19 +413,26 @@ class ImplicitSolver:
         elif body is not None and not (t0 == 0.0 and t1 == 1.0):
             body.set_time(t1)
 
+    def _lag_after_projection(self, body) -> bool:
+        # When step() projects after the (whole) substep, it takes the lagged contacts there; an
+        # unsplit substep need not take them before the projection as well.
+        return body is not None and self.config.project
+
     def _deferred_step(self, state: ClothState, body, h: float, t0: float, t1: float) -> None:
         self._place_body(state, body, t0, t1)
-        self._advance(state, body, h, deferred=True)
+        self._advance(state, body, h, deferred=True, lag=not self._lag_after_projection(body))
 
     def _guarded_step(self, state: ClothState, body, h: float, t0: float, t1: float, level: int) -> None:
         cfg = self.config
         self._place_body(state, body, t0, t1)
+        # Half steps of a retry need the contacts of the first half for the second.
+        lag = level > 0 or not self._lag_after_projection(body)
         if not cfg.guard:
-            self._advance(state, body, h)
+            self._advance(state, body, h, lag=lag)
             return
         backup = self._backups[level]
         backup.assign(state)
-        bad_vec = self._advance(state, body, h)
+        bad_vec = self._advance(state, body, h, lag=lag)
         bad = int(np.bitwise_or.reduce(bad_vec))
         if bad == 0:
             return
@@ -460,10 +467,11 @@ class ImplicitSolver:
         if cfg.damping and self.has_damping:
             eval_damping(m, x, self.x_start, h, energy=energy, gradient=gradient, hessian=hessian)
 
-    def _advance(self, state: ClothState, body, h: float, *, deferred: bool = False):
+    def _advance(self, state: ClothState, body, h: float, *, deferred: bool = False, lag: bool = True):
         """One backward-Euler step of length h in place; returns the guard's bad bits per instance,
         (I,) int (0 = fine), or None without the guard or when ``deferred`` (bits OR-ed into
-        :attr:`deferred_bad` on the device instead)."""
+        :attr:`deferred_bad` on the device instead). lag: take friction's lagged contacts at the
+        end (a successful step only)."""
         m, cfg, k = self.model, self.config, self.kernels
         dev, n, ni = m.device, m.num_vertices, m.num_instances
         x, v = state.positions, state.velocities
@@ -515,7 +523,8 @@ class ImplicitSolver:
                     break
         wp.launch(k.velocity, dim=n, device=dev, inputs=[x, self.x_start, 1.0 / h, v])
         if not cfg.guard:
-            self._lag_contacts(state, body)
+            if lag:
+                self._lag_contacts(state, body)
             return None
         # bad: 1 non-finite, 2 too fast, 4 energy rose, 8 line search found no decrease.
         wp.launch(k.check_vertices, dim=n, device=dev,
@@ -527,10 +536,11 @@ class ImplicitSolver:
             self.bad])
         if deferred:
             wp.launch(k.accumulate_bad, dim=ni, device=dev, inputs=[self.bad, self.deferred_bad])
-            self._lag_contacts(state, body)
+            if lag:
+                self._lag_contacts(state, body)
             return None
         bad = self.bad.numpy()
-        if not bad.any():
+        if lag and not bad.any():
             self._lag_contacts(state, body)
         return bad
 
