@@ -25,28 +25,26 @@ import warp as wp
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_solver import commit  # noqa: E402
 
-# Kernel name -> solver phase (names as Warp reports them: the Python function name, possibly with a
-# module/hash suffix; matched by prefix).
+# Warp names a kernel "forward kernel <factory>__locals__<function>_<hash>"; the factory (one per
+# energy file or solver module) decides the phase. Memory operations keep Warp's own names.
 PHASES = {
-    "pcg": ("spmv_dot", "update_xr", "control", "count", "update_p", "setup", "start", "start_all", "constrain"),
-    "assembly: membrane": ("membrane",), "assembly: bending": ("bending",), "assembly: inertia": ("inertia",),
-    "assembly: gravity": ("gravity",), "assembly: damping": ("damping",),
-    "body contact + friction (BVH queries)": ("contact", "friction", "frame"),
-    "self-contact": ("shift", "candidates", "repulsion"),
-    "body skinning, BVH refit, projection": ("skin", "refit", "bvh", "project", "pose", "interpolate", "lbs",
-                                            "blend", "set_time", "collider", "compute_", "mesh"),
-    "integrator (predict, line search, guard)": ("predict", "instance_dot", "ls_", "apply_step", "velocity",
-                                                  "check_", "accumulate", "keep_max", "max_abs"),
+    "pcg_kernels": "pcg",
+    "membrane_kernels": "assembly", "bending_kernels": "assembly", "inertia_kernels": "assembly",
+    "gravity_kernels": "assembly", "damping_kernels": "assembly", "friction_kernels": "assembly",
+    "contact_kernels": "body contact (BVH queries)",
+    "self_contact_kernels": "self-contact",
+    "collider_kernels": "body: posing, refit, projection",
+    "solver_kernels": "integrator (predict, line search, guard)",
 }
 
 
 def phase_of(name: str) -> str:
-    base = name.split("(")[0].strip().lower()
-    for phase, prefixes in PHASES.items():
-        for p in prefixes:
-            if base == p or base.startswith(p):
-                return phase
-    return "other"
+    label = name.removeprefix("forward kernel ").strip()
+    if "__locals__" in label:
+        return PHASES.get(label.split("__locals__")[0], "other kernels")
+    if label.startswith(("memcpy", "memset")):
+        return "copies and memsets"
+    return "other kernels"
 
 
 def profile(garment, body, n: int, *, device: str, frames: int, substeps: int, fps: float, self_contact: bool,
