@@ -49,6 +49,11 @@ GARMENT_PALETTE: tuple[tuple[float, float, float], ...] = (
     (0.55, 0.40, 0.70),
 )
 
+# [m] Garments are drawn this far out along their vertex normals: cloth resting 0.2 mm outside the
+# skin (the solver's projection offset) is closer than the depth buffer resolves in a full-body
+# view, and the body would show through it in patches. Only the image moves; no data does.
+GARMENT_DISPLAY_OFFSET = 1.5e-3
+
 _BACKGROUND_BOTTOM = (0.97, 0.97, 0.96)
 _BACKGROUND_TOP = (0.78, 0.84, 0.91)
 _FLOOR_COLORS = ((0.84, 0.83, 0.80), (0.74, 0.73, 0.70))
@@ -336,8 +341,9 @@ class _Scene:
         self._polys = []
         for track, rgb in items:
             cells = np.hstack([np.full((len(track.faces), 1), 3, np.int64), track.faces]).reshape(-1)
-            poly = pv.PolyData(np.array(track.frame(0), dtype=np.float32), cells)
-            poly.point_data["Normals"] = _vertex_normals(track.frame(0), track.faces)
+            points, normals = _display_points(track, 0)
+            poly = pv.PolyData(points, cells)
+            poly.point_data["Normals"] = normals
             poly.point_data.active_normals_name = "Normals"
             style = dict(smooth_shading=False, ambient=0.18, diffuse=0.85, specular=0.12, specular_power=20.0)
             colors = track.frame_colors(0)
@@ -368,9 +374,9 @@ class _Scene:
         for (track, _), poly in zip(self._items, self._polys):
             if track.static and frame > 0:
                 continue
-            points = track.frame(frame)
-            poly.points = np.array(points, dtype=np.float32)
-            poly.point_data["Normals"] = _vertex_normals(points, track.faces)
+            points, normals = _display_points(track, frame)
+            poly.points = points
+            poly.point_data["Normals"] = normals
             poly.point_data.active_normals_name = "Normals"
             colors = track.frame_colors(frame)
             if colors is not None and track.colors.ndim == 3:
@@ -387,6 +393,16 @@ class _Scene:
 
     def close(self) -> None:
         self._plotter.close()
+
+
+def _display_points(track: MeshTrack, frame: int) -> tuple[np.ndarray, np.ndarray]:
+    """Points (float32) and vertex normals of a track at a frame as drawn: garments moved
+    GARMENT_DISPLAY_OFFSET out along their normals."""
+    points = np.asarray(track.frame(frame), dtype=np.float64)
+    normals = _vertex_normals(points, track.faces)
+    if track.role == "garment":
+        points = points + GARMENT_DISPLAY_OFFSET * normals
+    return points.astype(np.float32), normals
 
 
 def _prepare_headless() -> None:
