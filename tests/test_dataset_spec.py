@@ -63,6 +63,7 @@ def test_tiny_is_small():
     (minimal(solver={"substeps": 0}), "solver.substeps"),
     (minimal(solver={"fps": -30}), "solver.fps"),
     (minimal(solver={"cg_iterations": 2.5}), "solver.cg_iterations"),
+    (minimal(solver={"self_contact": "on"}), "solver.self_contact"),
     (minimal(solver={"device": "tpu"}), "solver.device"),
     (minimal(solver={"substep": 4}), "solver.substep"),
     (minimal(protocol={"ramp_frames": 0}), "protocol.ramp_frames"),
@@ -170,3 +171,12 @@ def test_cli_bad_input_is_one_sentence_exit_2(tmp_path, capsys):
         err = capsys.readouterr().err.strip()
         assert needle in err and len(err.splitlines()) == 1, err
     assert not any(tmp_path.iterdir())  # nothing written
+
+
+def test_self_contact_option_reaches_the_solver_and_only_then_the_store_key():
+    off, on = parse_spec(minimal()), parse_spec(minimal(solver={"self_contact": True}))
+    assert off.solver_config().solver.self_contact is None
+    assert on.solver_config().solver.self_contact is not None
+    # Stores made before the option existed keep their key; turning it on makes a different store.
+    assert "self_contact" not in off.content_key("tshirt_1k")
+    assert on.content_hash("tshirt_1k") != off.content_hash("tshirt_1k")

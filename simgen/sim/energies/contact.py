@@ -35,14 +35,12 @@ Bodies: one warp.Mesh per instance (bodies of different instances overlap in spa
 """
 
 import functools
-import math
 from dataclasses import dataclass
 from types import SimpleNamespace
 
 import warp as wp
 
-from simgen.errors import InputError
-from simgen.sim.energies._common import module_name, resolve_outputs, scalar_types
+from simgen.sim.energies._common import check_penalty_params, module_name, resolve_outputs, scalar_types
 
 __all__ = ["ContactParams", "ContactFrame", "eval_contact", "update_contact_frame", "contact_funcs",
            "contact_kernels"]
@@ -65,15 +63,8 @@ class ContactParams:
     query_distance: float = 0.05
 
     def __post_init__(self) -> None:
-        for name in ("margin", "stiffness", "power", "query_distance"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
-                raise InputError(f"contact {name} must be a finite number > 0, got {v!r}")
-            object.__setattr__(self, name, float(v))
-        if self.power < 2.0:
-            raise InputError(f"contact power must be >= 2 (C1 energy, bounded Hessian), got {self.power!r}")
-        if self.query_distance <= self.margin:
-            raise InputError(f"contact query_distance ({self.query_distance}) must exceed the margin ({self.margin})")
+        check_penalty_params(self, "contact", ("margin", "stiffness", "power", "query_distance"),
+                             above=("query_distance", "margin"))
 
     @classmethod
     def snug(cls) -> "ContactParams":

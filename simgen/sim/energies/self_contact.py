@@ -27,7 +27,6 @@ Vertex-triangle only: edge-edge crossings of two coarse triangles are not resolv
 """
 
 import functools
-import math
 from dataclasses import dataclass
 from types import SimpleNamespace
 
@@ -35,7 +34,7 @@ import numpy as np
 import warp as wp
 
 from simgen.errors import InputError
-from simgen.sim.energies._common import module_name, resolve_outputs, scalar_types
+from simgen.sim.energies._common import check_penalty_params, module_name, resolve_outputs, scalar_types
 from simgen.sim.energies.contact import contact_funcs
 
 __all__ = ["SelfContactParams", "SelfContactSet", "eval_self_contact", "self_contact_kernels", "INSTANCE_SPACING"]
@@ -63,16 +62,8 @@ class SelfContactParams:
     max_candidates: int = 16
 
     def __post_init__(self) -> None:
-        for name in ("thickness", "stiffness", "power", "search_radius"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
-                raise InputError(f"self-contact {name} must be a finite number > 0, got {v!r}")
-            object.__setattr__(self, name, float(v))
-        if self.power < 2.0:
-            raise InputError(f"self-contact power must be >= 2 (C1 energy, bounded Hessian), got {self.power!r}")
-        if self.search_radius <= self.thickness:
-            raise InputError(f"self-contact search_radius ({self.search_radius}) must exceed the thickness "
-                             f"({self.thickness})")
+        check_penalty_params(self, "self-contact", ("thickness", "stiffness", "power", "search_radius"),
+                             above=("search_radius", "thickness"))
         k = self.max_candidates
         if isinstance(k, bool) or not isinstance(k, int) or k < 1:
             raise InputError(f"self-contact max_candidates must be an integer >= 1, got {k!r}")
@@ -177,7 +168,6 @@ class SelfContactSet:
         shift = INSTANCE_SPACING * np.asarray(model.host.vertex_instance, dtype=np.float64)
         rest = np.asarray(model.host.rest_positions, dtype=np.float64) + np.outer(shift, [1.0, 0.0, 0.0])
         self.points = wp.array(rest.astype(np.float32), dtype=wp.vec3, device=dev)
-        self.triangles2d = model.triangles
         flat = wp.array(np.asarray(model.host.triangles, dtype=np.int32).reshape(-1), dtype=wp.int32, device=dev)
         self._indices = flat  # the BVH keeps a reference; it must outlive the mesh
         self.mesh = wp.Mesh(points=self.points, indices=flat)
@@ -192,7 +182,7 @@ class SelfContactSet:
                   inputs=[positions, m.vertex_instance, INSTANCE_SPACING, self.points])
         self.mesh.refit()
         wp.launch(k.candidates, dim=m.num_vertices, device=m.device, inputs=[
-            positions, m.vertex_instance, self.triangles2d, self.mesh.id, INSTANCE_SPACING, p.search_radius,
+            positions, m.vertex_instance, m.triangles, self.mesh.id, INSTANCE_SPACING, p.search_radius,
             p.max_candidates, self.candidate, self.count])
 
 
@@ -209,5 +199,5 @@ def eval_self_contact(model, positions, contact_set: SelfContactSet, *, energy=N
         return
     p = contact_set.params
     wp.launch(self_contact_kernels(model.scalar).repulsion, dim=model.num_vertices, device=model.device, inputs=[
-        positions, model.vertex_instance, contact_set.triangles2d, contact_set.candidate, contact_set.count,
+        positions, model.vertex_instance, model.triangles, contact_set.candidate, contact_set.count,
         model.diag_slots, p.thickness, p.stiffness * scale, p.power, we, wg, wh, e, g, h])
