@@ -22,7 +22,7 @@ import warp as wp
 
 from simgen.errors import InputError
 from simgen.sim.energies._common import module_name, scalar_types
-from simgen.sim.energies.contact import contact_funcs
+from simgen.sim.energies.contact import ContactParams, contact_funcs, part_inputs
 
 __all__ = ["BodyCollider", "collider_kernels"]
 
@@ -46,7 +46,7 @@ def collider_kernels(scalar) -> SimpleNamespace:
     """Kernels for one scalar type: ``.project`` (push out + velocity fix) and ``.penetration``."""
     T = scalar_types(scalar)
     vec3 = T.vec3
-    body_distance = contact_funcs(scalar).body_distance
+    body_contact = contact_funcs(scalar).body_contact
     mod = module_name(__name__, scalar)
     zero = scalar(0.0)
 
@@ -59,6 +59,10 @@ def collider_kernels(scalar) -> SimpleNamespace:
         body_meshes: wp.array(dtype=wp.uint64),
         offset: scalar,
         query_distance: float,
+        vertex_part: wp.array(dtype=wp.int32),
+        part_masks: wp.array(dtype=wp.int32),
+        use_parts: int,
+        pinch_distance: float,
         depth_before: wp.array(dtype=scalar),
         count_inside: wp.array(dtype=wp.int32),
     ):
@@ -67,7 +71,10 @@ def collider_kernels(scalar) -> SimpleNamespace:
         mesh = body_meshes[inst]
         if mesh == wp.uint64(0):
             return
-        found, d, n, face, bu, bv = body_distance(mesh, x[i], query_distance)
+        home = int(-1)
+        if use_parts != 0:
+            home = vertex_part[i]
+        found, d, n, face, bu, bv = body_contact(mesh, part_masks, home, x[i], query_distance, pinch_distance)
         if found == 0 or d >= zero:
             return
         wp.atomic_max(depth_before, inst, -d)
@@ -88,6 +95,10 @@ def collider_kernels(scalar) -> SimpleNamespace:
         vertex_instance: wp.array(dtype=wp.int32),
         body_meshes: wp.array(dtype=wp.uint64),
         query_distance: float,
+        vertex_part: wp.array(dtype=wp.int32),
+        part_masks: wp.array(dtype=wp.int32),
+        use_parts: int,
+        pinch_distance: float,
         depth: wp.array(dtype=scalar),
         count_inside: wp.array(dtype=wp.int32),
     ):
@@ -96,7 +107,10 @@ def collider_kernels(scalar) -> SimpleNamespace:
         mesh = body_meshes[inst]
         if mesh == wp.uint64(0):
             return
-        found, d, n, face, bu, bv = body_distance(mesh, x[i], query_distance)
+        home = int(-1)
+        if use_parts != 0:
+            home = vertex_part[i]
+        found, d, n, face, bu, bv = body_contact(mesh, part_masks, home, x[i], query_distance, pinch_distance)
         if found != 0 and d < zero:
             wp.atomic_max(depth, inst, -d)
             wp.atomic_add(count_inside, inst, 1)
@@ -114,11 +128,14 @@ class BodyCollider:
     - points [m]: (I*Vb,) wp.vec3, the current body vertices (instance-major), the meshes' points.
     - velocities [m/s]: (I*Vb,) wp.vec3, the body's vertex velocities over the current step.
     - meshes: list of I ``wp.Mesh``; mesh_ids: (I,) uint64 warp array for the energy kernels.
+    - part_masks: (Fb,) int32 warp array of body part bit masks per face
+      (:func:`simgen.body.parts.face_part_masks`), or None: contact's part rule (where the body
+      intersects itself, :mod:`simgen.sim.energies.contact`) is on only with them.
 
     Body vertices are float32 (``wp.Mesh`` is); cloth models of either scalar type can use it.
     """
 
-    def __init__(self, points: np.ndarray, faces: np.ndarray, *, device=None) -> None:
+    def __init__(self, points: np.ndarray, faces: np.ndarray, *, part_masks=None, device=None) -> None:
         points = np.asarray(points, dtype=np.float32)
         faces = np.asarray(faces)
         if points.ndim != 3 or points.shape[2] != 3 or points.shape[1] < 4:
@@ -148,23 +165,38 @@ class BodyCollider:
             for k in range(self.num_instances)
         ]
         self.mesh_ids = wp.array(np.array([m.id for m in self.meshes], dtype=np.uint64), dtype=wp.uint64, device=dev)
+        self.part_masks = None
+        if part_masks is not None:
+            part_masks = np.asarray(part_masks)
+            if part_masks.shape != (len(faces),) or not np.issubdtype(part_masks.dtype, np.integer):
+                raise InputError(f"body part_masks must be {len(faces)} integers (one per face), got {part_masks.shape}")
+            self.part_masks = wp.array(part_masks.astype(np.int32), dtype=wp.int32, device=dev)
         self._warp_body = None
 
     @classmethod
-    def from_static(cls, vertices, faces, *, num_instances: int = 1, device=None) -> "BodyCollider":
+    def from_static(cls, vertices, faces, *, num_instances: int = 1, part_masks=None, device=None) -> "BodyCollider":
         """A static body: vertices [m] (V, 3) shared by all instances, or (I, V, 3); faces (F, 3),
-        counter-clockwise seen from outside, watertight."""
+        counter-clockwise seen from outside, watertight; part_masks as in the class doc."""
         v = np.asarray(vertices, dtype=np.float64)
         if v.ndim == 2:
             v = np.broadcast_to(v, (int(num_instances),) + v.shape)
-        return cls(v, faces, device=device)
+        return cls(v, faces, part_masks=part_masks, device=device)
 
     @classmethod
-    def from_warp_body(cls, body, *, device=None) -> "BodyCollider":
+    def from_warp_body(cls, body, *, seam_width: float | None = None, device=None) -> "BodyCollider":
         """A collider following a posed :class:`simgen.body.warp_lbs.WarpBody` (its instance count
-        and current vertices); call :meth:`update` after each ``pose_from_quats``."""
+        and current vertices); call :meth:`update` after each ``pose_from_quats``. Its part masks
+        come from the body model's skinning weights on the template (seam_width [m]: see
+        :func:`simgen.body.parts.face_part_masks`; None takes its default)."""
+        from simgen.body.parts import DEFAULT_SEAM_WIDTH, face_part_masks, face_parts
+
+        model = body.model
+        faces = np.asarray(model.faces)
+        masks = face_part_masks(model.v_template, faces, face_parts(model.weights, faces),
+                                seam_width=DEFAULT_SEAM_WIDTH if seam_width is None else seam_width)
         v = body.vertices.numpy()
-        self = cls(v, body.faces.numpy().reshape(-1, 3), device=device if device is not None else body.device)
+        self = cls(v, body.faces.numpy().reshape(-1, 3), part_masks=masks,
+                   device=device if device is not None else body.device)
         self._warp_body = body
         return self
 
@@ -231,13 +263,15 @@ class BodyCollider:
                              f"{model.num_instances} instances")
 
     def project(self, model, state, *, offset: float = 0.0, query_distance: float = 0.05,
-                depth=None, count=None) -> None:
+                pinch_distance: float = ContactParams.pinch_distance, depth=None, count=None) -> None:
         """Push every free cloth vertex inside its body (signed distance < 0) onto the surface.
 
         model: the ClothModel; state: its ClothState, modified in place: the position moves along
         the outward normal to signed distance ``offset`` [m] and the velocity loses the component
         that points into the body (relative to the body's velocity). query_distance [m]: deepest
-        penetration that is found. Optional outputs, (I,) per instance, accumulated with max/add:
+        penetration that is found. pinch_distance [m]: the part rule of the contact
+        (:class:`ContactParams`; with :attr:`part_masks` and a model with home parts, cloth on its own
+        part is not pushed out of another part pressing into it). Optional outputs, (I,) per instance, accumulated with max/add:
         depth [m] (model scalar) of the deepest vertex before projection, count (int32) of vertices
         found inside (pinned ones included, though they are not moved).
         """
@@ -248,15 +282,18 @@ class BodyCollider:
             count = wp.zeros(model.num_instances, dtype=wp.int32, device=model.device)
         wp.launch(collider_kernels(model.scalar).project, dim=model.num_vertices, device=model.device, inputs=[
             state.positions, state.velocities, model.vertex_instance, model.vertex_pinned, self.mesh_ids,
-            offset, query_distance, depth, count])
+            offset, query_distance, *part_inputs(model, self.part_masks, pinch_distance), depth, count])
 
-    def penetration(self, model, positions, *, query_distance: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
+    def penetration(self, model, positions, *, query_distance: float = 0.05,
+                    pinch_distance: float = ContactParams.pinch_distance) -> tuple[np.ndarray, np.ndarray]:
         """Per instance: the maximum depth [m] of cloth vertices inside the body (0 if none), shape
-        (I,), and the share of the instance's vertices inside, shape (I,) (host sync)."""
+        (I,), and the share of the instance's vertices inside, shape (I,) (host sync). Inside means
+        a negative contact distance, with the contact's part rule (see :meth:`project`)."""
         self.check_model(model)
         depth = wp.zeros(model.num_instances, dtype=model.scalar, device=model.device)
         count = wp.zeros(model.num_instances, dtype=wp.int32, device=model.device)
         wp.launch(collider_kernels(model.scalar).penetration, dim=model.num_vertices, device=model.device,
-                  inputs=[positions, model.vertex_instance, self.mesh_ids, query_distance, depth, count])
+                  inputs=[positions, model.vertex_instance, self.mesh_ids, query_distance,
+                          *part_inputs(model, self.part_masks, pinch_distance), depth, count])
         nv = np.diff(model.vertex_start)
         return depth.numpy().astype(np.float64), count.numpy() / nv

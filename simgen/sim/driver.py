@@ -23,11 +23,14 @@ moving linearly). The solver's projection (``SolverConfig.project``) pushes any 
 the body back onto it after every step, so output frames are free of penetration except where the
 posed body intersects itself.
 
-Self-intersection rule: a cloth vertex inside the body (signed distance < 0) counts as *at a body
-self-intersection* when its closest body point, moved ``self_intersection_probe`` (2 mm) outward
-along the contact normal, is still inside the body by the generalised winding number (> 0.5). A
-closest surface that is buried in another body part (arm in torso at the armpit, thigh in thigh
-at the crotch) cannot be exited along its normal, and the projection cannot resolve such vertices.
+Self-intersection rule: a cloth vertex inside the body (by the generalised winding number, > 0.5)
+counts as *at a body self-intersection* when (a) its closest body point, moved
+``self_intersection_probe`` (2 mm) outward along the contact normal, is still inside the body: a
+closest surface buried in another body part (arm in torso at the armpit, thigh in thigh at the
+crotch) cannot be exited along its normal, and the projection cannot resolve such vertices; or (b)
+the solver's contact, with its body part rule, sees it outside: cloth lying on its own part where
+another part presses into that one (a forearm sunk into the belly) is kept on its own part and
+so lies inside the other (:mod:`simgen.sim.energies.contact`).
 """
 
 from __future__ import annotations
@@ -44,6 +47,7 @@ import warp as wp
 from simgen.errors import InputError
 from simgen.rotations import quat_slerp
 from simgen.sim.collider import BodyCollider
+from simgen.sim.energies.contact import contact_funcs, part_inputs
 from simgen.sim.materials import Material, get_material
 from simgen.sim.model import ClothModel
 from simgen.sim.solver import ImplicitSolver, SolverConfig
@@ -201,6 +205,9 @@ class SimulationResult:
 
 
 # ------------------------------------------------------------------------------------ statistics
+_body_contact = contact_funcs(wp.float32).body_contact
+
+
 @wp.kernel(enable_backward=False)
 def _classify_inside(
     x: wp.array(dtype=wp.vec3),
@@ -208,6 +215,10 @@ def _classify_inside(
     winding_meshes: wp.array(dtype=wp.uint64),
     query_distance: float,
     probe: float,
+    vertex_part: wp.array(dtype=wp.int32),
+    part_masks: wp.array(dtype=wp.int32),
+    use_parts: int,
+    pinch_distance: float,
     depth: wp.array(dtype=wp.float32),
     inside: wp.array(dtype=wp.int32),
     self_hit: wp.array(dtype=wp.int32),
@@ -239,6 +250,11 @@ def _classify_inside(
     w = wp.mesh_query_point_sign_winding_number(winding_mesh, p + probe * n, query_distance + probe, 2.0, 0.5)
     if w.result and w.sign < 0.0:
         self_hit[i] = 1
+    elif use_parts != 0:
+        found, dc, nc, fc, uc, vc = _body_contact(winding_mesh, part_masks, vertex_part[i], xi, query_distance,
+                                                  pinch_distance)
+        if found != 0 and dc >= 0.0:
+            self_hit[i] = 1
 
 
 class _FrameStats:
@@ -267,7 +283,9 @@ class _FrameStats:
         cfg = self.config
         wp.launch(_classify_inside, dim=self.model.num_vertices, device=self.model.device,
                   inputs=[positions, self.model.vertex_instance, self.winding_ids, float(cfg.query_distance),
-                          float(cfg.self_intersection_probe), self.depth, self.inside, self.self_hit])
+                          float(cfg.self_intersection_probe),
+                          *part_inputs(self.model, self.collider.part_masks, cfg.solver.contact.pinch_distance),
+                          self.depth, self.inside, self.self_hit])
         depth, inside, self_hit = self.depth.numpy(), self.inside.numpy(), self.self_hit.numpy()
         rows = []
         for a, b in zip(self.starts[:-1], self.starts[1:]):
@@ -491,7 +509,8 @@ def simulate_batch(garment, body, jobs, config: SimulationConfig | None = None, 
     initial = stats_probe.measure(state.positions)
     if any(r["inside_count"] for r in initial):
         # The garment must never start inside the body: project what a bad template left inside.
-        collider.project(model, state, offset=cfg.solver.projection_offset, query_distance=cfg.query_distance)
+        collider.project(model, state, offset=cfg.solver.projection_offset, query_distance=cfg.query_distance,
+                         pinch_distance=cfg.solver.contact.pinch_distance)
 
     T_max = max(num_out)
     schedule = ([("relax", k) for k in range(cfg.relax_frames)] + [("ramp", k) for k in range(cfg.ramp_frames)]

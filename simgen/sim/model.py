@@ -71,6 +71,8 @@ class InstanceSpec:
     faces, int shape (F, 3); hinges, int shape (E, 4), hinge_faces, int shape (E, 2) (see
     :func:`simgen.sim.topology.extract_hinges`).
     material: its :class:`Material`. pinned, bool shape (V,). bending_rest: "template" or "flat".
+    body_part: int shape (V,), each vertex's home body part (index into
+    :data:`simgen.body.parts.BODY_PARTS`), or None (the body contact's part rule stays off).
     """
 
     name: str
@@ -81,6 +83,7 @@ class InstanceSpec:
     material: Material
     pinned: np.ndarray
     bending_rest: str
+    body_part: np.ndarray | None = None
 
 
 @dataclass
@@ -116,7 +119,7 @@ class ClothModelBuilder:
         return len(self.instances)
 
     def add_instance(self, vertices, faces, material: Material | str = "cotton", *, pinned=None,
-                     bending_rest: str = "template", name: str | None = None) -> int:
+                     bending_rest: str = "template", body_part=None, name: str | None = None) -> int:
         """Add one cloth instance; returns its index.
 
         vertices [m], shape (V, 3): rest shape (the 3D template; its triangles define the rest
@@ -126,6 +129,9 @@ class ClothModelBuilder:
         pinned: optional bool mask shape (V,) or integer vertex indices; pinned vertices are left to
           the integrator (kinematic), the energies ignore the flag.
         bending_rest: "template" (rest angle = the template's dihedral angle) or "flat" (0, as SNUG).
+        body_part: optional int shape (V,), each vertex's home body part for contact where the body
+          intersects itself (:func:`simgen.body.parts.vertex_parts` of the garment's skinning
+          weights; :mod:`simgen.sim.energies.contact`); None leaves that rule off.
         name: label for reports (default "instance<k>").
         """
         k = len(self.instances)
@@ -167,17 +173,25 @@ class ClothModelBuilder:
                 mask[pinned.reshape(-1)] = True
             else:
                 raise InputError(f"{where}: pinned must be a bool mask or integer indices, got {pinned.dtype}")
+        if body_part is not None:
+            from simgen.body.parts import BODY_PARTS
+
+            body_part = np.asarray(body_part)
+            if (body_part.shape != (len(vertices),) or not np.issubdtype(body_part.dtype, np.integer)
+                    or body_part.min() < 0 or body_part.max() >= len(BODY_PARTS)):
+                raise InputError(f"{where}: body_part must be {len(vertices)} integers in [0, {len(BODY_PARTS)})")
+            body_part = body_part.astype(np.int32)
         _triangle_rest_frames(vertices, faces)  # validates the rest shape now, naming the instance
         hinges, hinge_faces = extract_hinges(faces)
         self.instances.append(InstanceSpec(
             name=name or f"instance{k}", vertices=vertices.copy(), faces=faces, hinges=hinges,
-            hinge_faces=hinge_faces, material=material, pinned=mask, bending_rest=bending_rest))
+            hinge_faces=hinge_faces, material=material, pinned=mask, bending_rest=bending_rest, body_part=body_part))
         return k
 
     def add_spec(self, spec: InstanceSpec) -> int:
         """Add an instance described by an :class:`InstanceSpec` (e.g. taken from another model)."""
         return self.add_instance(spec.vertices, spec.faces, spec.material, pinned=spec.pinned,
-                                 bending_rest=spec.bending_rest, name=spec.name)
+                                 bending_rest=spec.bending_rest, body_part=spec.body_part, name=spec.name)
 
     def finalize(self, device=None, *, dtype=wp.float32) -> ClothModel:
         """Build the concatenated model on ``device`` (default: Warp's default device).
@@ -200,6 +214,8 @@ class ClothModel:
     - vertex_instance, int32 (V,); vertex_pinned, int32 (V,) (1 = pinned, for the integrator).
     - vertex_friction [-], (V,): Coulomb coefficient of the vertex's material.
     - vertex_damping_mass [1/s], (V,): Rayleigh alpha of the vertex's material.
+    - vertex_body_part, int32 (V,): home body part for contact (-1: none); ``has_body_parts`` says
+      whether any instance has them.
     - triangles, int32 (F, 3); tri_inv_rest, (F,) mat22: Dm^-1 in the triangle's 2D rest frame
       [1/m]; tri_rest_area [m^2], (F,); tri_lambda, tri_mu [N/m], (F,): plane-stress Lame
       parameters times thickness; tri_damping [s], (F,): Rayleigh beta; tri_instance, int32 (F,).
@@ -223,10 +239,11 @@ class ClothModel:
 
     @classmethod
     def from_mesh(cls, vertices, faces, material: Material | str, *, pinned=None, bending_rest: str = "template",
-                  device=None, dtype=wp.float32, name: str | None = None) -> ClothModel:
+                  body_part=None, device=None, dtype=wp.float32, name: str | None = None) -> ClothModel:
         """A one-instance model from a triangle mesh (arguments as in :meth:`ClothModelBuilder.add_instance`)."""
         builder = ClothModelBuilder()
-        builder.add_instance(vertices, faces, material, pinned=pinned, bending_rest=bending_rest, name=name)
+        builder.add_instance(vertices, faces, material, pinned=pinned, bending_rest=bending_rest,
+                             body_part=body_part, name=name)
         return builder.finalize(device, dtype=dtype)
 
     @classmethod
@@ -234,12 +251,16 @@ class ClothModel:
                      bending_rest: str = "template", device=None, dtype=wp.float32) -> ClothModel:
         """A one-instance model from a :class:`simgen.garment.Garment` (its template is the rest shape).
 
-        material: default ``garment.metadata['default_material']``, else cotton.
+        material: default ``garment.metadata['default_material']``, else cotton. Each vertex's home
+        body part comes from the garment's skinning weights.
         """
+        from simgen.body.parts import vertex_parts
+
         if material is None:
             material = (garment.metadata or {}).get("default_material") or "cotton"
         return cls.from_mesh(garment.vertices, garment.faces, material, pinned=pinned,
-                             bending_rest=bending_rest, device=device, dtype=dtype, name=garment.name)
+                             bending_rest=bending_rest, body_part=vertex_parts(garment.skin_weights),
+                             device=device, dtype=dtype, name=garment.name)
 
     @classmethod
     def concatenate(cls, models, *, device=None, dtype=None) -> ClothModel:
@@ -306,11 +327,14 @@ class ClothModel:
         vertex_friction = np.array([m.friction_coefficient for m in mats])[vertex_instance]
         vertex_damping_mass = np.array([m.damping_mass for m in mats])[vertex_instance]
         pinned = np.concatenate([s.pinned for s in instances])
+        body_part = np.concatenate([s.body_part if s.body_part is not None else np.full(len(s.vertices), -1, np.int32)
+                                    for s in instances])
+        self.has_body_parts = any(s.body_part is not None for s in instances)
 
         self.pattern: BsrPattern = build_bsr_pattern(len(rest), faces, hinges)
         self.host = SimpleNamespace(
             rest_positions=rest, vertex_mass=mass, vertex_instance=vertex_instance, vertex_pinned=pinned,
-            vertex_friction=vertex_friction, vertex_damping_mass=vertex_damping_mass,
+            vertex_friction=vertex_friction, vertex_damping_mass=vertex_damping_mass, vertex_body_part=body_part,
             triangles=faces, tri_inv_rest=inv_rest, tri_rest_area=area, tri_lambda=lam_h, tri_mu=mu_h,
             tri_damping=tri_damping, tri_instance=tri_instance,
             hinges=hinges, hinge_faces=hinge_faces, hinge_stiffness=hinge_stiffness,
@@ -332,6 +356,7 @@ class ClothModel:
         self.vertex_pinned = iarr(pinned)
         self.vertex_friction = farr(vertex_friction)
         self.vertex_damping_mass = farr(vertex_damping_mass)
+        self.vertex_body_part = iarr(body_part)
         self.triangles = iarr(faces)
         self.tri_inv_rest = farr(inv_rest, types.mat22)
         self.tri_rest_area = farr(area)

@@ -393,7 +393,8 @@ class ImplicitSolver:
                 self._inside.zero_()
                 self._depth.zero_()
                 body.project(self.model, work, offset=cfg.projection_offset,
-                             query_distance=cfg.contact.query_distance, depth=self._depth, count=self._inside)
+                             query_distance=cfg.contact.query_distance, pinch_distance=cfg.contact.pinch_distance,
+                             depth=self._depth, count=self._inside)
                 wp.launch(self.kernels.keep_max, dim=self.model.num_instances, device=self.model.device,
                           inputs=[self._depth, self._depth_max])
                 self._lag_contacts(work, body)
@@ -407,7 +408,8 @@ class ImplicitSolver:
         if body is not None and cfg.friction is not None and not self._frame_valid:
             # No lagged contacts yet: take them at this step's start, cloth and body both at t0.
             body.set_time(t0)
-            update_contact_frame(self.model, state.positions, body.mesh_ids, cfg.contact, self.contact_frame)
+            update_contact_frame(self.model, state.positions, body.mesh_ids, cfg.contact, self.contact_frame,
+                                 part_masks=body.part_masks)
             self._frame_valid = True
             body.set_time(t1)
         elif body is not None and not (t0 == 0.0 and t1 == 1.0):
@@ -458,7 +460,8 @@ class ImplicitSolver:
         eval_bending(m, x, energy=energy, gradient=gradient, hessian=hessian)
         eval_gravity(m, x, cfg.gravity, energy=energy, gradient=gradient)
         if body is not None:
-            eval_contact(m, x, mesh_ids, cfg.contact, energy=energy, gradient=gradient, hessian=hessian)
+            eval_contact(m, x, mesh_ids, cfg.contact, part_masks=body.part_masks, energy=energy, gradient=gradient,
+                         hessian=hessian)
             if cfg.friction is not None:
                 eval_friction(m, x, self.x_start, mesh_ids, self.contact_frame, h, cfg.friction,
                               energy=energy, gradient=gradient, hessian=hessian)
@@ -551,7 +554,8 @@ class ImplicitSolver:
         # it and overestimate the normal force by orders of magnitude.
         if body is None or self.config.friction is None:
             return
-        update_contact_frame(self.model, state.positions, body.mesh_ids, self.config.contact, self.contact_frame)
+        update_contact_frame(self.model, state.positions, body.mesh_ids, self.config.contact, self.contact_frame,
+                             part_masks=body.part_masks)
         self._frame_valid = True
 
     def reset_contacts(self) -> None:

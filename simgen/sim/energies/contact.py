@@ -32,6 +32,21 @@ stays continuous where the chosen face changes).
 
 Bodies: one warp.Mesh per instance (bodies of different instances overlap in space), passed as a
 (num_instances,) uint64 array of mesh ids indexed by the vertex's instance; id 0 = no body.
+
+Where the body meets itself. A skinned body without pose correctives intersects itself wherever a
+limb presses against it (arms sinking into the torso in a rest pose, thighs at the crotch), and
+cloth caught between the two parts cannot end outside both. The closest surface then belongs to
+the part that is pressing in, and pushing the cloth out of it moves the cloth across that part:
+torso cloth ends outside the forearm, so the arm is inside the shirt, and the arms leave the
+sleeves. With body part labels (:mod:`simgen.body.parts`: one bit mask of parts per body face,
+one home part per cloth vertex, taken from the garment's skinning weights), the closest feature is
+taken from the vertex's own part instead whenever the closest face belongs to another part only
+and a face of the own part lies within ``pinch_distance``: cloth lying on its own part keeps to
+it and the pressing part passes through it (inside both parts, where the statistics count it
+apart as a body self-intersection). Cloth farther than ``pinch_distance`` from its own part (a
+loose dress hit by a leg) collides with whatever is closest, as before. Faces near the seam
+between two parts (the shoulder, the hip) belong to both, so cloth sliding across a seam sees one
+continuous surface.
 """
 
 import functools
@@ -40,10 +55,11 @@ from types import SimpleNamespace
 
 import warp as wp
 
+from simgen.errors import InputError
 from simgen.sim.energies._common import check_penalty_params, module_name, resolve_outputs, scalar_types
 
 __all__ = ["ContactParams", "ContactFrame", "eval_contact", "update_contact_frame", "contact_funcs",
-           "contact_kernels"]
+           "contact_kernels", "part_inputs"]
 
 
 @dataclass(frozen=True)
@@ -55,16 +71,22 @@ class ContactParams:
     power [-]: p >= 2 so that the energy is C1 and its Hessian bounded (SNUG: 3).
     query_distance [m]: how far the closest-point query looks; a vertex deeper inside the body than
       this gets no contact force, so it must exceed the deepest expected penetration.
+    pinch_distance [m]: a cloth vertex within this distance of its own body part ignores the other
+      parts (where the body intersects itself; see the module doc). Used only when body part labels
+      are given; must exceed the margin.
     """
 
     margin: float = 2.0e-3
     stiffness: float = 1.0e4
     power: float = 3.0
     query_distance: float = 0.05
+    pinch_distance: float = 5.0e-3
 
     def __post_init__(self) -> None:
-        check_penalty_params(self, "contact", ("margin", "stiffness", "power", "query_distance"),
+        check_penalty_params(self, "contact", ("margin", "stiffness", "power", "query_distance", "pinch_distance"),
                              above=("query_distance", "margin"))
+        if self.pinch_distance <= self.margin:
+            raise InputError(f"contact pinch_distance ({self.pinch_distance}) must exceed the margin ({self.margin})")
 
     @classmethod
     def snug(cls) -> "ContactParams":
@@ -82,6 +104,12 @@ def contact_funcs(scalar) -> SimpleNamespace:
       lies within query_distance; d [m] the signed distance (< 0 inside); n the outward unit normal
       = grad(d); face, u, v the closest face and the weights of its first two vertices (float32, as
       warp.mesh_eval_position/velocity take them).
+    part_distance(mesh, part_masks, part_bit, x, radius) -> as body_distance, over the faces whose
+      mask has part_bit within the box x +- radius only (found 0 if none is closer than radius);
+      the sign comes from the chosen face's normal.
+    body_contact(mesh, part_masks, home, x, query_distance, pinch_distance) -> as body_distance,
+      with the rule of the module doc for a vertex of home part ``home`` (-1: none, plain
+      body_distance).
     """
     vec3 = scalar_types(scalar).vec3
     zero = scalar(0.0)
@@ -150,7 +178,62 @@ def contact_funcs(scalar) -> SimpleNamespace:
             return 1, s * dist, (s / dist) * diff, q.face, u, v
         return 1, zero, nf, q.face, u, v
 
-    return SimpleNamespace(closest_point_triangle=closest_point_triangle, body_distance=body_distance)
+    @wp.func
+    def part_distance(mesh: wp.uint64, part_masks: wp.array(dtype=wp.int32), part_bit: int, x: vec3,
+                      radius: float):
+        xf = wp.vec3(x)
+        query = wp.mesh_query_aabb(mesh, xf - wp.vec3(radius), xf + wp.vec3(radius))
+        f = int(0)
+        best_face = int(-1)
+        best = scalar(radius)
+        best_point = vec3()
+        best_bary = vec3()
+        best_interior = int(0)
+        while wp.mesh_query_aabb_next(query, f):
+            if (part_masks[f] & part_bit) != 0:
+                c, bary, interior = closest_point_triangle(
+                    x, vec3(wp.mesh_get_point(mesh, f * 3 + 0)), vec3(wp.mesh_get_point(mesh, f * 3 + 1)),
+                    vec3(wp.mesh_get_point(mesh, f * 3 + 2)))
+                dist = wp.length(x - c)
+                if dist < best:
+                    best = dist
+                    best_face = f
+                    best_point = c
+                    best_bary = bary
+                    best_interior = interior
+        if best_face < 0:
+            return 0, zero, vec3(), -1, float(0.0), float(0.0)
+        p0 = vec3(wp.mesh_get_point(mesh, best_face * 3 + 0))
+        p1 = vec3(wp.mesh_get_point(mesh, best_face * 3 + 1))
+        p2 = vec3(wp.mesh_get_point(mesh, best_face * 3 + 2))
+        nf = wp.normalize(wp.cross(p1 - p0, p2 - p0))
+        u = float(best_bary[0])
+        v = float(best_bary[1])
+        if best_interior != 0:
+            return 1, wp.dot(x - p0, nf), nf, best_face, u, v
+        diff = x - best_point
+        s = one
+        if wp.dot(diff, nf) < zero:
+            s = -one
+        if best > tiny:
+            return 1, s * best, (s / best) * diff, best_face, u, v
+        return 1, zero, nf, best_face, u, v
+
+    @wp.func
+    def body_contact(mesh: wp.uint64, part_masks: wp.array(dtype=wp.int32), home: int, x: vec3,
+                     query_distance: float, pinch_distance: float):
+        found, d, n, face, u, v = body_distance(mesh, x, query_distance)
+        if found != 0 and home >= 0 and d < scalar(pinch_distance):
+            bit = int(1) << home
+            if (part_masks[face] & bit) == 0:
+                # The closest face is another part's: near the own part, that part wins (module doc).
+                own, d_own, n_own, face_own, u_own, v_own = part_distance(mesh, part_masks, bit, x, pinch_distance)
+                if own != 0:
+                    return own, d_own, n_own, face_own, u_own, v_own
+        return found, d, n, face, u, v
+
+    return SimpleNamespace(closest_point_triangle=closest_point_triangle, body_distance=body_distance,
+                           part_distance=part_distance, body_contact=body_contact)
 
 
 @functools.cache
@@ -159,7 +242,7 @@ def contact_kernels(scalar) -> SimpleNamespace:
     (per-vertex closest-point data), one thread per vertex."""
     T = scalar_types(scalar)
     vec3, mat33 = T.vec3, T.mat33
-    body_distance = contact_funcs(scalar).body_distance
+    body_contact = contact_funcs(scalar).body_contact
 
     @wp.kernel(enable_backward=False, module=module_name(__name__, scalar))
     def contact(
@@ -171,6 +254,10 @@ def contact_kernels(scalar) -> SimpleNamespace:
         stiffness: scalar,
         power: scalar,
         query_distance: float,
+        vertex_part: wp.array(dtype=wp.int32),
+        part_masks: wp.array(dtype=wp.int32),
+        use_parts: int,
+        pinch_distance: float,
         want_energy: int,
         want_grad: int,
         want_hess: int,
@@ -183,7 +270,10 @@ def contact_kernels(scalar) -> SimpleNamespace:
         mesh = body_meshes[inst]
         if mesh == wp.uint64(0):
             return
-        found, d, n, face, u, v = body_distance(mesh, x[i], query_distance)
+        home = int(-1)
+        if use_parts != 0:
+            home = vertex_part[i]
+        found, d, n, face, u, v = body_contact(mesh, part_masks, home, x[i], query_distance, pinch_distance)
         if found == 0 or d >= margin:
             return
         pen = margin - d
@@ -204,6 +294,10 @@ def contact_kernels(scalar) -> SimpleNamespace:
         stiffness: scalar,
         power: scalar,
         query_distance: float,
+        vertex_part: wp.array(dtype=wp.int32),
+        part_masks: wp.array(dtype=wp.int32),
+        use_parts: int,
+        pinch_distance: float,
         distance: wp.array(dtype=scalar),
         normal: wp.array(dtype=vec3),
         face: wp.array(dtype=wp.int32),
@@ -219,7 +313,10 @@ def contact_kernels(scalar) -> SimpleNamespace:
         mesh = body_meshes[vertex_instance[i]]
         if mesh == wp.uint64(0):
             return
-        found, d, n, f, u, v = body_distance(mesh, x[i], query_distance)
+        home = int(-1)
+        if use_parts != 0:
+            home = vertex_part[i]
+        found, d, n, f, u, v = body_contact(mesh, part_masks, home, x[i], query_distance, pinch_distance)
         if found == 0:
             return
         distance[i] = d
@@ -232,21 +329,30 @@ def contact_kernels(scalar) -> SimpleNamespace:
     return SimpleNamespace(contact=contact, frame=frame)
 
 
-def eval_contact(model, positions, body_meshes, params: ContactParams = ContactParams(), *, energy=None,
-                 gradient=None, hessian=None, scale: float = 1.0) -> None:
+def part_inputs(model, part_masks, pinch_distance: float) -> list:
+    """Kernel arguments (vertex_part, part_masks, use_parts, pinch_distance [m]) of the part rule: on
+    when the body has part masks and the model's vertices have home parts (module doc)."""
+    use = int(part_masks is not None and model.has_body_parts)
+    return [model.vertex_body_part, part_masks if use else None, use, float(pinch_distance)]
+
+
+def eval_contact(model, positions, body_meshes, params: ContactParams = ContactParams(), *, part_masks=None,
+                 energy=None, gradient=None, hessian=None, scale: float = 1.0) -> None:
     """Accumulate the body contact penalty of every vertex.
 
     positions [m], (V,) vec3; body_meshes: (num_instances,) uint64 warp array of warp.Mesh ids
-    (0 = none; each mesh watertight, triangles counter-clockwise seen from outside). Outputs (added
-    to, optional): energy [J] per instance; gradient [J/m] (V,) vec3; hessian (diagonal blocks,
-    PSD): the model's BsrMatrix or its values. scale multiplies all three.
+    (0 = none; each mesh watertight, triangles counter-clockwise seen from outside); part_masks:
+    optional (Fb,) int32 body part bit masks per face (:attr:`BodyCollider.part_masks`), which
+    switch on the part rule of the module doc for models with home parts. Outputs (added to,
+    optional): energy [J] per instance; gradient [J/m] (V,) vec3; hessian (diagonal blocks, PSD):
+    the model's BsrMatrix or its values. scale multiplies all three.
     """
     we, wg, wh, e, g, h = resolve_outputs(energy, gradient, hessian)
     if not (we or wg or wh):
         return
     wp.launch(contact_kernels(model.scalar).contact, dim=model.num_vertices, device=model.device, inputs=[
         positions, model.vertex_instance, body_meshes, model.diag_slots, params.margin, params.stiffness * scale,
-        params.power, params.query_distance, we, wg, wh, e, g, h])
+        params.power, params.query_distance, *part_inputs(model, part_masks, params.pinch_distance), we, wg, wh, e, g, h])
 
 
 class ContactFrame:
@@ -268,8 +374,11 @@ class ContactFrame:
         self.force = wp.zeros(n, dtype=T.scalar, device=dev)
 
 
-def update_contact_frame(model, positions, body_meshes, params: ContactParams, frame: ContactFrame) -> None:
-    """Fill ``frame`` from the closest body points of ``positions`` [m], (V,) vec3 (overwrites)."""
+def update_contact_frame(model, positions, body_meshes, params: ContactParams, frame: ContactFrame, *,
+                         part_masks=None) -> None:
+    """Fill ``frame`` from the closest body points of ``positions`` [m], (V,) vec3 (overwrites);
+    part_masks as in :func:`eval_contact`."""
     wp.launch(contact_kernels(model.scalar).frame, dim=model.num_vertices, device=model.device, inputs=[
         positions, model.vertex_instance, body_meshes, params.margin, params.stiffness, params.power,
-        params.query_distance, frame.distance, frame.normal, frame.face, frame.bary, frame.force])
+        params.query_distance, *part_inputs(model, part_masks, params.pinch_distance), frame.distance, frame.normal, frame.face,
+        frame.bary, frame.force])
