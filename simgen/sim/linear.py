@@ -22,9 +22,12 @@ Batched models: the Hessian is block diagonal over instances, so every instance 
 converged, or whose right-hand side is not finite, stops without holding up or poisoning the
 others, and every launch returns at once when all instances are done.
 
-Per iteration: (1) q = H p fused with the per-instance reduction p.q, (2) x += alpha p,
-r -= alpha q, z = M^-1 r fused with r.z, (3) one thread: each instance's beta and convergence test,
-the iteration count and the all-done flag, (4) p = z + beta p. Reductions are segmented block
+Per iteration, three launches: (1) p = z + beta p and q = H p computed as H z + beta q (q holds
+H p of the previous iteration, so no separate pass updates p before the product), fused with the
+per-instance reduction p.q, (2) x += alpha p, r -= alpha q, z = M^-1 r fused with r.z, (3) one
+thread: each instance's beta and convergence test, the iteration count and the all-done flag.
+The recurrence for q is exact in exact arithmetic (H is linear); in float32 it drifts from H p by
+round-off only, far below the 1e-3 tolerance the solver uses. Reductions are segmented block
 reductions: a block of ``REDUCE_BLOCK`` vertices sums its first instance's share in a tile and adds
 it with one atomic (vertices of a second instance in the block, at an instance boundary, add
 theirs directly). Per-vertex atomics into one scalar per instance serialise on that address: at
@@ -101,10 +104,12 @@ def pcg_kernels(scalar) -> SimpleNamespace:
         r: wp.array(dtype=vec3),
         z: wp.array(dtype=vec3),
         p: wp.array(dtype=vec3),
+        q: wp.array(dtype=vec3),
         rz: wp.array(dtype=scalar),
         n: int,
     ):
-        # Start from x = 0: r = b (zero at pinned vertices), z = D^-1 r, p = z, rz = r.z per instance.
+        # Start from x = 0: r = b (zero at pinned vertices), z = D^-1 r, p = q = 0 (the first
+        # iteration's beta is 0, so it makes p = z), rz = r.z per instance.
         block, lane = wp.tid()
         i = block * wp.block_dim() + lane
         value = zero
@@ -126,7 +131,8 @@ def pcg_kernels(scalar) -> SimpleNamespace:
             r[i] = b
             zi = dinv * b
             z[i] = zi
-            p[i] = zi
+            p[i] = vec3()
+            q[i] = vec3()
             value = wp.dot(b, zi)
         # One call site for every thread of the block: the tile sum synchronises the block.
         block_add(rz, vertex_instance, block, lane, i, n, value)
@@ -138,11 +144,13 @@ def pcg_kernels(scalar) -> SimpleNamespace:
         done: wp.array(dtype=wp.int32),
         pq: wp.array(dtype=scalar),
         rz_new: wp.array(dtype=scalar),
+        beta: wp.array(dtype=scalar),
     ):
         k = wp.tid()
         rz0[k] = rz[k]
         pq[k] = zero
         rz_new[k] = zero
+        beta[k] = zero  # the first direction is p = z
         done[k] = 0
         if not (rz[k] > zero):
             done[k] = 1  # zero right-hand side (or a non-finite one): x = 0 is the answer
@@ -159,11 +167,13 @@ def pcg_kernels(scalar) -> SimpleNamespace:
         running[0] = 1 - flag
 
     @wp.kernel(enable_backward=False, module=mod)
-    def spmv_dot(
+    def direction_spmv_dot(
         offsets: wp.array(dtype=wp.int32),
         columns: wp.array(dtype=wp.int32),
         values: wp.array(dtype=mat33),
         vertex_instance: wp.array(dtype=wp.int32),
+        z: wp.array(dtype=vec3),
+        beta: wp.array(dtype=scalar),
         p: wp.array(dtype=vec3),
         q: wp.array(dtype=vec3),
         pq: wp.array(dtype=scalar),
@@ -171,18 +181,24 @@ def pcg_kernels(scalar) -> SimpleNamespace:
         all_done: wp.array(dtype=wp.int32),
         n: int,
     ):
+        # p <- z + beta p, q <- H z + beta q (= H p): each row reads only z of its neighbours.
         if all_done[0] != 0:
             return  # uniform over the block, so no thread misses the tile sum below
         block, lane = wp.tid()
         i = block * wp.block_dim() + lane
         value = zero
         if i < n:
-            if done[vertex_instance[i]] == 0:
+            inst = vertex_instance[i]
+            if done[inst] == 0:
                 acc = vec3()
                 for k in range(offsets[i], offsets[i + 1]):
-                    acc += values[k] * p[columns[k]]
-                q[i] = acc
-                value = wp.dot(p[i], acc)
+                    acc += values[k] * z[columns[k]]
+                b = beta[inst]
+                pi = z[i] + b * p[i]
+                qi = acc + b * q[i]
+                p[i] = pi
+                q[i] = qi
+                value = wp.dot(pi, qi)
         block_add(pq, vertex_instance, block, lane, i, n, value)
 
     @wp.kernel(enable_backward=False, module=mod)
@@ -263,25 +279,8 @@ def pcg_kernels(scalar) -> SimpleNamespace:
         if flag == 0 and iterations[0] < max_iterations:
             running[0] = 1
 
-    @wp.kernel(enable_backward=False, module=mod)
-    def update_p(
-        vertex_instance: wp.array(dtype=wp.int32),
-        z: wp.array(dtype=vec3),
-        beta: wp.array(dtype=scalar),
-        p: wp.array(dtype=vec3),
-        done: wp.array(dtype=wp.int32),
-        all_done: wp.array(dtype=wp.int32),
-    ):
-        i = wp.tid()
-        if all_done[0] != 0:
-            return
-        inst = vertex_instance[i]
-        if done[inst] != 0:
-            return
-        p[i] = z[i] + beta[inst] * p[i]
-
-    return SimpleNamespace(constrain=constrain, setup=setup, start=start, start_all=start_all, spmv_dot=spmv_dot,
-                           update_xr=update_xr, control=control, update_p=update_p)
+    return SimpleNamespace(constrain=constrain, setup=setup, start=start, start_all=start_all,
+                           direction_spmv_dot=direction_spmv_dot, update_xr=update_xr, control=control)
 
 
 class BlockJacobiPCG:
@@ -354,8 +353,10 @@ class BlockJacobiPCG:
         ni, vi = m.num_instances, m.vertex_instance
         self._rz.zero_()
         wp.launch_tiled(k.setup, dim=[self._blocks], block_dim=self._block, device=dev, inputs=[
-            values, m.diag_slots, m.vertex_pinned, vi, rhs, x, self.inv_diag, self.r, self.z, self.p, self._rz, n])
-        wp.launch(k.start, dim=ni, device=dev, inputs=[self._rz, self._rz0, self._done, self._pq, self._rz_new])
+            values, m.diag_slots, m.vertex_pinned, vi, rhs, x, self.inv_diag, self.r, self.z, self.p, self.q,
+            self._rz, n])
+        wp.launch(k.start, dim=ni, device=dev,
+                  inputs=[self._rz, self._rz0, self._done, self._pq, self._rz_new, self._beta])
         wp.launch(k.start_all, dim=1, device=dev,
                   inputs=[self._done, ni, self._iterations, self._all_done, self._running])
         if self.dynamic:
@@ -367,16 +368,15 @@ class BlockJacobiPCG:
     def _iteration(self, values, x) -> None:
         m, k = self.model, self.kernels
         n, dev, vi = m.num_vertices, m.device, m.vertex_instance
-        wp.launch_tiled(k.spmv_dot, dim=[self._blocks], block_dim=self._block, device=dev, inputs=[
-            m.bsr_offsets, m.bsr_columns, values, vi, self.p, self.q, self._pq, self._done, self._all_done, n])
+        wp.launch_tiled(k.direction_spmv_dot, dim=[self._blocks], block_dim=self._block, device=dev, inputs=[
+            m.bsr_offsets, m.bsr_columns, values, vi, self.z, self._beta, self.p, self.q, self._pq, self._done,
+            self._all_done, n])
         wp.launch_tiled(k.update_xr, dim=[self._blocks], block_dim=self._block, device=dev, inputs=[
             vi, self.p, self.q, self.inv_diag, self._rz, self._pq, x, self.r, self.z, self._rz_new, self._done,
             self._all_done, n])
         wp.launch(k.control, dim=1, device=dev, inputs=[
             self._rz, self._rz0, self._pq, self._rz_new, self._beta, self.tolerance * self.tolerance,
             m.num_instances, self.max_iterations, self._done, self._iterations, self._all_done, self._running])
-        wp.launch(k.update_p, dim=n, device=dev, inputs=[vi, self.z, self._beta, self.p, self._done,
-                                                         self._all_done])
 
     @property
     def iteration_counter(self) -> wp.array:

@@ -484,17 +484,18 @@ class ImplicitSolver:
         wp.launch(k.predict, dim=n, device=dev, inputs=[x, v, m.vertex_pinned, h, self.x_start, self.x_hat])
         if self.self_contact is not None:
             self.self_contact.update(self.x_start)
-        if cfg.guard:
-            self.energy_start.zero_()
-            self._eval(x, h, mesh_ids, body, energy=self.energy_start)
-        want_energy = cfg.line_search
         for it in range(cfg.newton_iterations):
             self.gradient.zero_()
             self.hessian.values.zero_()
+            # The guard's E(x_start) is the first assembly's energy (Newton starts there), so no
+            # separate energy pass is needed for it.
+            want_energy = cfg.line_search or (cfg.guard and it == 0)
             if want_energy:
                 self.energy.zero_()
             self._eval(x, h, mesh_ids, body, energy=self.energy if want_energy else None,
                        gradient=self.gradient, hessian=self.hessian)
+            if cfg.guard and it == 0:
+                wp.copy(self.energy_start, self.energy)
             self.pcg.apply_constraints(self.hessian)
             # H d = g; the Newton update is x - d (pinned entries of d are exactly 0).
             self.pcg.solve(self.hessian, self.gradient, self.step_dir)
