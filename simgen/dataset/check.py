@@ -156,6 +156,15 @@ def check_dataset(path, *, body=None, stride: int = 1, max_depth: float = DEFAUL
     faces = tpl["faces"].astype(np.int64) if tpl is not None else None
     rest_inv = triangle_rest_inverse(tpl["garment_template"], faces) if tpl is not None else None
     V = len(tpl["vertices"]) if tpl is not None else None
+    # The solver's contact keeps cloth on its own body part where the body intersects itself: the
+    # same part labels classify such cloth as at a self-intersection here.
+    from simgen.body.parts import face_part_masks, face_parts, vertex_parts
+    from simgen.sim.energies.contact import ContactParams
+
+    home_parts = vertex_parts(tpl["skin_weights"]) if tpl is not None else None
+    part_masks = face_part_masks(bm.v_template, bm.faces, face_parts(bm.weights, bm.faces))
+    contact = ((ds.attrs.get("solver") or {}).get("config") or {}).get("contact") or {}
+    pinch_distance = float(contact.get("pinch_distance", ContactParams.pinch_distance))
 
     # ---- fits
     if tpl is not None:
@@ -221,7 +230,9 @@ def check_dataset(path, *, body=None, stride: int = 1, max_depth: float = DEFAUL
             if i % _POSE_CHUNK == 0:  # the forward pass holds (N, Vb, 4, 4) blended transforms: chunk it
                 sel = frames[i:i + _POSE_CHUNK]
                 posed = bm.forward(betas[sel], poses[sel], trans[sel]).vertices
-            depth, self_hit = body_penetration(x[k], posed[i % _POSE_CHUNK], bm.faces, device=device)
+            depth, self_hit = body_penetration(x[k], posed[i % _POSE_CHUNK], bm.faces, device=device,
+                                               home_parts=home_parts, part_masks=part_masks,
+                                               pinch_distance=pinch_distance)
             regular = np.where(self_hit, 0.0, depth)
             deep = int(np.sum(regular > max_depth))
             d = float(regular.max(initial=0.0))

@@ -59,7 +59,8 @@ def strain_summary(positions, faces, rest_inverse) -> tuple[np.ndarray, np.ndarr
     return s.mean(axis=1), s.max(axis=1)
 
 
-def body_penetration(points, body_vertices, body_faces, *, probe: float = 2.0e-3, device: str = "cpu"
+def body_penetration(points, body_vertices, body_faces, *, probe: float = 2.0e-3, device: str = "cpu",
+                     home_parts=None, part_masks=None, pinch_distance: float = 5.0e-3
                      ) -> tuple[np.ndarray, np.ndarray]:
     """Depth [m] of cloth vertices inside the posed body, and which are at a body self-intersection.
 
@@ -67,7 +68,12 @@ def body_penetration(points, body_vertices, body_faces, *, probe: float = 2.0e-3
     Returns depth (V,) (0 outside; signed distance by the winding number) and self_hit (V,) bool:
     an inside vertex whose closest body point, moved ``probe`` outward along the surface normal,
     is still inside the body (the closest surface is buried in another body part, as in the
-    armpits and crotch; the same rule as the solver's statistics, computed here independently).
+    armpits and crotch); or, given home_parts (V,) (each vertex's body part,
+    :func:`simgen.body.parts.vertex_parts` of the garment's weights) and part_masks (Fb,)
+    (:func:`simgen.body.parts.face_part_masks`), an inside vertex lying outside its own part
+    within ``pinch_distance`` [m] of it: cloth the solver's contact keeps on its own part where
+    another part presses into it. The same rules as the solver's statistics, computed here
+    independently.
     """
     from simgen.body.surface import project_to_surface
 
@@ -77,10 +83,25 @@ def body_penetration(points, body_vertices, body_faces, *, probe: float = 2.0e-3
     inside = np.nonzero(depth > 0)[0]
     if len(inside):
         bv = np.asarray(body_vertices, dtype=np.float64)
-        tri = bv[np.asarray(body_faces)[proj.face[inside]]]
+        bf = np.asarray(body_faces)
+        tri = bv[bf[proj.face[inside]]]
         n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
         n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
         outward = proj.closest[inside] + probe * n
-        sd = project_to_surface(outward, bv, body_faces, device=device).signed_distance
+        sd = project_to_surface(outward, bv, bf, device=device).signed_distance
         self_hit[inside] = sd < 0.0
+    rest = inside[~self_hit[inside]]
+    if len(rest) and home_parts is not None and part_masks is not None:
+        pts = np.asarray(points, dtype=np.float64)
+        home = np.asarray(home_parts)[rest]
+        masks = np.asarray(part_masks)
+        for part in np.unique(home):
+            sel = rest[home == part]
+            faces = bf[(masks & (1 << int(part))) != 0]
+            own = project_to_surface(pts[sel], bv, faces, device=device)
+            tri = bv[faces[own.face]]
+            n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+            offset = pts[sel] - own.closest
+            outside_own = np.einsum("ij,ij->i", offset, n) >= 0.0
+            self_hit[sel] = outside_own & (np.linalg.norm(offset, axis=1) <= pinch_distance)
     return depth, self_hit

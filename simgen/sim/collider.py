@@ -74,7 +74,7 @@ def collider_kernels(scalar) -> SimpleNamespace:
         home = int(-1)
         if use_parts != 0:
             home = vertex_part[i]
-        found, d, n, face, bu, bv = body_contact(mesh, part_masks, home, x[i], query_distance, pinch_distance)
+        found, d, n, face, bu, bv, own = body_contact(mesh, part_masks, home, x[i], query_distance, pinch_distance)
         if found == 0 or d >= zero:
             return
         wp.atomic_max(depth_before, inst, -d)
@@ -110,7 +110,7 @@ def collider_kernels(scalar) -> SimpleNamespace:
         home = int(-1)
         if use_parts != 0:
             home = vertex_part[i]
-        found, d, n, face, bu, bv = body_contact(mesh, part_masks, home, x[i], query_distance, pinch_distance)
+        found, d, n, face, bu, bv, own = body_contact(mesh, part_masks, home, x[i], query_distance, pinch_distance)
         if found != 0 and d < zero:
             wp.atomic_max(depth, inst, -d)
             wp.atomic_add(count_inside, inst, 1)

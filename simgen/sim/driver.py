@@ -251,7 +251,7 @@ def _classify_inside(
     if w.result and w.sign < 0.0:
         self_hit[i] = 1
     elif use_parts != 0:
-        found, dc, nc, fc, uc, vc = _body_contact(winding_mesh, part_masks, vertex_part[i], xi, query_distance,
+        found, dc, nc, fc, uc, vc, own = _body_contact(winding_mesh, part_masks, vertex_part[i], xi, query_distance,
                                                   pinch_distance)
         if found != 0 and dc >= 0.0:
             self_hit[i] = 1

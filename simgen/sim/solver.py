@@ -286,6 +286,8 @@ class ImplicitSolver:
         self.bad = wp.zeros(ni, dtype=wp.int32, device=dev)
         self.update_norm = wp.zeros(1, dtype=T.scalar, device=dev)
         self.contact_frame = ContactFrame(m)
+        # The contact's body part rule, decided per vertex at each step's start and held through it.
+        self.part_choice = wp.zeros(m.num_vertices, dtype=wp.int32, device=dev)
         self.self_contact = SelfContactSet(m, cfg.self_contact) if cfg.self_contact is not None else None
         self._frame_valid = False
         self.no_body = wp.zeros(ni, dtype=wp.uint64, device=dev)
@@ -453,15 +455,16 @@ class ImplicitSolver:
         self._guarded_step(state, body, 0.5 * h, t0, tm, level + 1)
         self._guarded_step(state, body, 0.5 * h, tm, t1, level + 1)
 
-    def _eval(self, x, h: float, mesh_ids, body, *, energy=None, gradient=None, hessian=None) -> None:
+    def _eval(self, x, h: float, mesh_ids, body, *, energy=None, gradient=None, hessian=None,
+              decide_parts: bool = False) -> None:
         m, cfg = self.model, self.config
         eval_inertia(m, x, self.x_hat, h, energy=energy, gradient=gradient, hessian=hessian)
         eval_membrane(m, x, energy=energy, gradient=gradient, hessian=hessian)
         eval_bending(m, x, energy=energy, gradient=gradient, hessian=hessian)
         eval_gravity(m, x, cfg.gravity, energy=energy, gradient=gradient)
         if body is not None:
-            eval_contact(m, x, mesh_ids, cfg.contact, part_masks=body.part_masks, energy=energy, gradient=gradient,
-                         hessian=hessian)
+            eval_contact(m, x, mesh_ids, cfg.contact, part_masks=body.part_masks, part_choice=self.part_choice,
+                         decide_parts=decide_parts, energy=energy, gradient=gradient, hessian=hessian)
             if cfg.friction is not None:
                 eval_friction(m, x, self.x_start, mesh_ids, self.contact_frame, h, cfg.friction,
                               energy=energy, gradient=gradient, hessian=hessian)
@@ -493,7 +496,7 @@ class ImplicitSolver:
             if want_energy:
                 self.energy.zero_()
             self._eval(x, h, mesh_ids, body, energy=self.energy if want_energy else None,
-                       gradient=self.gradient, hessian=self.hessian)
+                       gradient=self.gradient, hessian=self.hessian, decide_parts=(it == 0))
             if cfg.guard and it == 0:
                 wp.copy(self.energy_start, self.energy)
             self.pcg.apply_constraints(self.hessian)

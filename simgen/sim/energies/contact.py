@@ -109,7 +109,10 @@ def contact_funcs(scalar) -> SimpleNamespace:
       the sign comes from the chosen face's normal.
     body_contact(mesh, part_masks, home, x, query_distance, pinch_distance) -> as body_distance,
       with the rule of the module doc for a vertex of home part ``home`` (-1: none, plain
-      body_distance).
+      body_distance), plus a last value ``own``: 1 where the own part's surface was taken.
+    held_contact(mesh, part_masks, home, x, query_distance, pinch_distance, own) -> as
+      body_distance, with the rule's choice given: own = 1 takes the own part's surface within
+      pinch_distance (found 0 beyond), 0 the closest surface of the whole body.
     """
     vec3 = scalar_types(scalar).vec3
     zero = scalar(0.0)
@@ -229,11 +232,20 @@ def contact_funcs(scalar) -> SimpleNamespace:
                 # The closest face is another part's: near the own part, that part wins (module doc).
                 own, d_own, n_own, face_own, u_own, v_own = part_distance(mesh, part_masks, bit, x, pinch_distance)
                 if own != 0:
-                    return own, d_own, n_own, face_own, u_own, v_own
-        return found, d, n, face, u, v
+                    return own, d_own, n_own, face_own, u_own, v_own, 1
+        return found, d, n, face, u, v, 0
+
+    @wp.func
+    def held_contact(mesh: wp.uint64, part_masks: wp.array(dtype=wp.int32), home: int, x: vec3,
+                     query_distance: float, pinch_distance: float, own: int):
+        if own != 0 and home >= 0:
+            f1, d1, n1, face1, u1, v1 = part_distance(mesh, part_masks, int(1) << home, x, pinch_distance)
+            return f1, d1, n1, face1, u1, v1
+        f0, d0, n0, face0, u0, v0 = body_distance(mesh, x, query_distance)
+        return f0, d0, n0, face0, u0, v0
 
     return SimpleNamespace(closest_point_triangle=closest_point_triangle, body_distance=body_distance,
-                           part_distance=part_distance, body_contact=body_contact)
+                           part_distance=part_distance, body_contact=body_contact, held_contact=held_contact)
 
 
 @functools.cache
@@ -242,7 +254,8 @@ def contact_kernels(scalar) -> SimpleNamespace:
     (per-vertex closest-point data), one thread per vertex."""
     T = scalar_types(scalar)
     vec3, mat33 = T.vec3, T.mat33
-    body_contact = contact_funcs(scalar).body_contact
+    funcs = contact_funcs(scalar)
+    body_contact, held_contact = funcs.body_contact, funcs.held_contact
 
     @wp.kernel(enable_backward=False, module=module_name(__name__, scalar))
     def contact(
@@ -258,6 +271,8 @@ def contact_kernels(scalar) -> SimpleNamespace:
         part_masks: wp.array(dtype=wp.int32),
         use_parts: int,
         pinch_distance: float,
+        part_choice: wp.array(dtype=wp.int32),
+        choice_mode: int,
         want_energy: int,
         want_grad: int,
         want_hess: int,
@@ -273,7 +288,22 @@ def contact_kernels(scalar) -> SimpleNamespace:
         home = int(-1)
         if use_parts != 0:
             home = vertex_part[i]
-        found, d, n, face, u, v = body_contact(mesh, part_masks, home, x[i], query_distance, pinch_distance)
+        found = int(0)
+        d = scalar(0.0)
+        n = vec3()
+        face = int(-1)
+        u = float(0.0)
+        v = float(0.0)
+        if choice_mode == 2:
+            # The part rule's choice made at the step's start, held so E stays smooth within the step.
+            found, d, n, face, u, v = held_contact(mesh, part_masks, home, x[i], query_distance, pinch_distance,
+                                                   part_choice[i])
+        else:
+            own = int(0)
+            found, d, n, face, u, v, own = body_contact(mesh, part_masks, home, x[i], query_distance,
+                                                        pinch_distance)
+            if choice_mode == 1:
+                part_choice[i] = own
         if found == 0 or d >= margin:
             return
         pen = margin - d
@@ -316,7 +346,7 @@ def contact_kernels(scalar) -> SimpleNamespace:
         home = int(-1)
         if use_parts != 0:
             home = vertex_part[i]
-        found, d, n, f, u, v = body_contact(mesh, part_masks, home, x[i], query_distance, pinch_distance)
+        found, d, n, f, u, v, own = body_contact(mesh, part_masks, home, x[i], query_distance, pinch_distance)
         if found == 0:
             return
         distance[i] = d
@@ -337,13 +367,17 @@ def part_inputs(model, part_masks, pinch_distance: float) -> list:
 
 
 def eval_contact(model, positions, body_meshes, params: ContactParams = ContactParams(), *, part_masks=None,
-                 energy=None, gradient=None, hessian=None, scale: float = 1.0) -> None:
+                 part_choice=None, decide_parts: bool = True, energy=None, gradient=None, hessian=None,
+                 scale: float = 1.0) -> None:
     """Accumulate the body contact penalty of every vertex.
 
     positions [m], (V,) vec3; body_meshes: (num_instances,) uint64 warp array of warp.Mesh ids
     (0 = none; each mesh watertight, triangles counter-clockwise seen from outside); part_masks:
     optional (Fb,) int32 body part bit masks per face (:attr:`BodyCollider.part_masks`), which
-    switch on the part rule of the module doc for models with home parts. Outputs (added to,
+    switch on the part rule of the module doc for models with home parts; part_choice: optional
+    (V,) int32 array holding the rule's choice per vertex: decide_parts=True makes the choice at
+    ``positions`` and stores it, False reuses the stored one (a solver step decides at its start
+    and holds the choice, so the energy it minimises has no jumps). Outputs (added to,
     optional): energy [J] per instance; gradient [J/m] (V,) vec3; hessian (diagonal blocks, PSD):
     the model's BsrMatrix or its values. scale multiplies all three.
     """
@@ -352,7 +386,8 @@ def eval_contact(model, positions, body_meshes, params: ContactParams = ContactP
         return
     wp.launch(contact_kernels(model.scalar).contact, dim=model.num_vertices, device=model.device, inputs=[
         positions, model.vertex_instance, body_meshes, model.diag_slots, params.margin, params.stiffness * scale,
-        params.power, params.query_distance, *part_inputs(model, part_masks, params.pinch_distance), we, wg, wh, e, g, h])
+        params.power, params.query_distance, *part_inputs(model, part_masks, params.pinch_distance), part_choice,
+        0 if part_choice is None else (1 if decide_parts else 2), we, wg, wh, e, g, h])
 
 
 class ContactFrame:
