@@ -67,12 +67,15 @@ def test_cloth_on_its_own_part_is_not_pushed_out_of_another_part():
     """A torso vertex 1.5 mm outside the torso and 0.5 mm inside an arm that almost touches it:
     the closest surface is the arm's. Plain closest-surface contact pushes it out of the arm, that
     is into the torso; with the part rule it keeps to the torso (pushed outward, +x). A vertex 8 mm
-    from the torso (beyond the pinch distance) is pushed out of the arm either way."""
+    from the torso (beyond the pinch distance) is pushed out of the arm either way, and a vertex
+    resting 0.5 mm outside the arm (as cloth on a deltoid folded over the torso) collides with the
+    arm either way."""
     torso_r, arm_r = 0.1, 0.05
     x_pinched, x_loose = torso_r + 1.5e-3, torso_r + 8e-3
     cloth = np.array([[x_pinched, 0.0, 0.0], [0.3, 0.2, 0.0], [0.3, -0.2, 0.0]])
     params = ContactParams()
-    for x0, arm_face_x in ((x_pinched, x_pinched - 0.5e-3), (x_loose, x_loose - 0.5e-3)):
+    for x0, arm_face_x in ((x_pinched, x_pinched - 0.5e-3), (x_loose, x_loose - 0.5e-3),
+                           (x_pinched, x_pinched + 0.5e-3)):
         cloth[0, 0] = x0
         arm_center = np.array([arm_face_x + arm_r, 0.0, 0.0])
         vertices, faces, masks = two_spheres(torso_r, arm_center, arm_r)
@@ -92,6 +95,12 @@ def test_cloth_on_its_own_part_is_not_pushed_out_of_another_part():
                              state.positions.numpy()[0])
         grad_plain, d_plain, n_plain, x_plain = results[False]
         grad_rule, d_rule, n_rule, x_rule = results[True]
+        if arm_face_x > x0:
+            # Outside the arm, 0.5 mm from it: its surface is the contact, with or without parts.
+            assert d_plain == pytest.approx(0.5e-3, abs=0.15e-3) and n_plain[0] < -0.99
+            assert np.allclose(grad_rule, grad_plain) and d_rule == pytest.approx(d_plain)
+            assert x_rule[0] == pytest.approx(x0, abs=1e-7) and x_plain[0] == pytest.approx(x0, abs=1e-7)
+            continue
         # Plain contact: 0.5 mm inside the arm, normal -x, projected onto the arm's surface.
         assert d_plain == pytest.approx(-0.5e-3, abs=0.15e-3) and n_plain[0] < -0.99
         assert grad_plain[0] > 0  # force -grad along -x: out of the arm, into the torso

@@ -40,13 +40,15 @@ the part that is pressing in, and pushing the cloth out of it moves the cloth ac
 torso cloth ends outside the forearm, so the arm is inside the shirt, and the arms leave the
 sleeves. With body part labels (:mod:`simgen.body.parts`: one bit mask of parts per body face,
 one home part per cloth vertex, taken from the garment's skinning weights), the closest feature is
-taken from the vertex's own part instead whenever the closest face belongs to another part only
-and a face of the own part lies within ``pinch_distance``: cloth lying on its own part keeps to
-it and the pressing part passes through it (inside both parts, where the statistics count it
-apart as a body self-intersection). Cloth farther than ``pinch_distance`` from its own part (a
-loose dress hit by a leg) collides with whatever is closest, as before. Faces near the seam
-between two parts (the shoulder, the hip) belong to both, so cloth sliding across a seam sees one
-continuous surface.
+taken from the vertex's own part instead whenever the vertex is inside the body at a face that
+belongs to another part only, and a face of the own part lies within ``pinch_distance``: cloth
+lying on its own part keeps to it and the pressing part passes through it (inside the other
+part, where the statistics count it apart as a body self-intersection). Cloth outside the body
+collides with whatever surface is closest, whichever part it belongs to (cloth resting on the
+deltoid where skinning folds it over the torso at the shoulder must stay on it), and so does
+cloth farther than ``pinch_distance`` from its own part (a loose dress hit by a leg). Faces near
+the seam between two parts (the shoulder, the hip) belong to both, so cloth sliding across a seam
+sees one continuous surface.
 """
 
 import functools
@@ -71,9 +73,9 @@ class ContactParams:
     power [-]: p >= 2 so that the energy is C1 and its Hessian bounded (SNUG: 3).
     query_distance [m]: how far the closest-point query looks; a vertex deeper inside the body than
       this gets no contact force, so it must exceed the deepest expected penetration.
-    pinch_distance [m]: a cloth vertex within this distance of its own body part ignores the other
-      parts (where the body intersects itself; see the module doc). Used only when body part labels
-      are given; must exceed the margin.
+    pinch_distance [m]: a cloth vertex inside another body part and within this distance of its own
+      part keeps to its own part (where the body intersects itself; see the module doc). Used only
+      when body part labels are given; must exceed the margin.
     """
 
     margin: float = 2.0e-3
@@ -226,7 +228,7 @@ def contact_funcs(scalar) -> SimpleNamespace:
     def body_contact(mesh: wp.uint64, part_masks: wp.array(dtype=wp.int32), home: int, x: vec3,
                      query_distance: float, pinch_distance: float):
         found, d, n, face, u, v = body_distance(mesh, x, query_distance)
-        if found != 0 and home >= 0 and d < scalar(pinch_distance):
+        if found != 0 and home >= 0 and d < zero:
             bit = int(1) << home
             if (part_masks[face] & bit) == 0:
                 # The closest face is another part's: near the own part, that part wins (module doc).
