@@ -156,3 +156,16 @@ def test_limb_sweeping_through_the_torso_leaves_the_cloth_on_the_torso():
           f"part rule max {shift[True].max() * 1e3:.3f} mm")
     assert shift[False].mean() > 0.02  # the failure the rule exists for
     assert shift[True].max() < 2e-3  # settling onto the contact margin only
+
+
+def test_bad_part_inputs_are_one_clear_error():
+    with pytest.raises(InputError, match="pinch_distance"):
+        ContactParams(pinch_distance=1e-3)  # not above the 2 mm margin
+    v = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    with pytest.raises(InputError, match="body_part"):
+        ClothModel.from_mesh(v, [[0, 1, 2]], "cotton", body_part=[0, 1, len(BODY_PARTS)], device=DEVICE)
+    with pytest.raises(InputError, match="part_masks"):
+        BodyCollider.from_static(*two_spheres(0.1, np.array([0.3, 0.0, 0.0]), 0.05)[:2], part_masks=np.zeros(3),
+                                 device=DEVICE)
+    with pytest.raises(InputError, match="seam_width"):
+        face_part_masks(v, [[0, 1, 2]], [0], seam_width=-1.0)
