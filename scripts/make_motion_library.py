@@ -6,7 +6,8 @@
 Writes, for the bundled open body:
 - motions/NAME.npz for every procedural clip (simgen.motion.procedural, put on the floor) and for
   the three CMU clips of subject 131 (BVH at 120 fps, retargeted by simgen.motion.bvh.load_bvh,
-  low-pass filtered, resampled to 30 fps, at most 10 s, put on the floor), as simgen's AMASS-style
+  low-pass filtered, resampled to 30 fps, at most 10 s, put on the floor, arms turned out of the
+  torso by simgen.motion.separate_arms), as simgen's AMASS-style
   .npz (simgen.motion.save_motion);
 - motions/library.json: {"version": 1, "clips": {NAME: {"split", "description", "source",
   "attribution"}}} with the fixed train/test split below;
@@ -116,8 +117,13 @@ CMU_SIGMA_BODY_S = 1.0 / 30.0
 _DISTAL = (10, 11, 20, 21, 22, 23)
 
 
+#: Body shapes whose arms the CMU clips keep out of the torso (simgen.motion.clearance): the mean body
+#: and beta 1 = +2, the widest waist of the thesis-tshirt shapes (docs/body_betas.json).
+CMU_CLEAR_SHAPES = np.array([[0.0, 0.0], [0.0, 2.0]])
+
+
 def build_cmu(body, mocap_dir: Path) -> list:
-    from simgen.motion import BvhMappingWarning, MotionClip, load_bvh, put_on_floor, resample, trim
+    from simgen.motion import BvhMappingWarning, MotionClip, load_bvh, put_on_floor, resample, separate_arms, trim
     from simgen.motion.bvh import parse_bvh
 
     clips = []
@@ -136,6 +142,12 @@ def build_cmu(body, mocap_dir: Path) -> list:
         if window is not None and clip.duration > window[1] - window[0]:
             clip = trim(clip, *window)
         clip = put_on_floor(clip, body)
+        # The capture's arms touch the actor's sides; on this body they sink into the torso (and the
+        # hands into the hips): turn them out, for the mean body and the widest shape of the presets.
+        clip = separate_arms(clip, body, betas=CMU_CLEAR_SHAPES,
+                             progress=lambda k, n, name=name: print(f"\rseparate_arms {name}: {k}/{n}", end="",
+                                                                     file=sys.stderr))
+        print(file=sys.stderr)
         clip.meta.update(source="CMU mocap", attribution=CMU_ACKNOWLEDGEMENT, description=description)
         clips.append(clip)
     return clips

@@ -6,6 +6,7 @@ on the floor y = 0 (DESIGN.md, "Motions").
 
 from simgen.motion.amass import load_amass
 from simgen.motion.bvh import BvhMappingWarning, load_bvh
+from simgen.motion.clearance import arm_torso_penetration, separate_arms
 from simgen.motion.clip import MotionClip
 from simgen.motion.library import import_motion, library_split, list_motions, load_motion
 from simgen.motion.motion_file import load_motion_file, save_motion
@@ -24,6 +25,8 @@ from simgen.motion.ops import (
 
 __all__ = [
     "MotionClip",
+    "separate_arms",
+    "arm_torso_penetration",
     "load_amass",
     "load_bvh",
     "BvhMappingWarning",

@@ -36,6 +36,15 @@ with no usable segment takes its BVH rotation relative to the BVH frame of its p
 expressed in the parent's alignment. SMPL local rotations follow as G_parent^T G_j; unmapped SMPL joints
 stay at rest relative to their parent.
 
+Collars whose BVH joint sits on its parent (CMU's LeftCollar on Chest2: a clavicle that starts on the
+spine) are the exception: they take the BVH clavicle's rotation from its rest, G_j(t) = Q_b(t), without
+bone alignment. CMU's clavicle bone rises 26 degrees from the chest's midline to the shoulder, the open
+body's falls 8 degrees from beside the neck: the two bones pivot at different points and their
+directions do not compare. Matching them would shrug SMPL's shoulders by the difference in every frame
+(34 degrees on the CMU clips: a skinned shoulder squeezed up against the neck, on which no shirt stays).
+Skeletons whose clavicle starts beside the spine (Mixamo, Daz, Unreal, SMPL) keep the alignment. The upper arm is
+still aligned to the BVH's by direction, so the arms point where the capture's do.
+
 Root translation: the midpoint of SMPL's two hip joints follows the midpoint of the BVH's hip joints
 (the pelvis joint itself when the hips are not mapped), scaled by the ratio of the body's leg length
 (hip-knee-ankle, averaged over both legs) to the BVH skeleton's; with no legs mapped, the ratio of
@@ -66,6 +75,9 @@ DEFAULT_BVH_FPS = 30.0
 
 _J = {n: i for i, n in enumerate(SMPL_JOINT_NAMES)}
 _SPINE_CHAIN = {_J["spine1"], _J["spine2"], _J["spine3"], _J["neck"], _J["head"]}
+# Joints retargeted by their rotation from rest instead of by bone direction when their BVH joint sits
+# on its parent (module docstring).
+_COLLARS = (_J["left_collar"], _J["right_collar"])
 
 
 class BvhMappingWarning(UserWarning):
@@ -498,6 +510,7 @@ class _JointPlan:
     align: np.ndarray  # (3, 3) rest alignment A_j
     pairs: list[tuple[int, int]]  # (SMPL end joint, BVH end joint) of each bone used
     follower: bool  # no bone of its own: driven by its BVH rotation relative to the parent's bone frame
+    rest_relative: bool = False  # G_j = Q_b: the BVH joint's rotation from its rest, no bone alignment
 
 
 def _leaf_direction(j: int, smpl_rest: np.ndarray) -> np.ndarray:
@@ -529,7 +542,7 @@ def _bvh_leaf_directions(skel: BvhSkeleton, rest: np.ndarray, W: np.ndarray, eps
 
 
 def _plan(skel_rest: np.ndarray, smpl_rest: np.ndarray, mapping: dict[int, int], eps: float,
-          bvh_leaf_dirs: dict[int, np.ndarray]) -> dict[int, _JointPlan]:
+          bvh_leaf_dirs: dict[int, np.ndarray], rest_relative: set[int]) -> dict[int, _JointPlan]:
     children = {j: [int(c) for c in np.flatnonzero(SMPL_PARENTS == j)] for j in range(NUM_JOINTS)}
 
     def targets(j: int) -> list[int]:
@@ -551,6 +564,9 @@ def _plan(skel_rest: np.ndarray, smpl_rest: np.ndarray, mapping: dict[int, int],
             continue
         b = mapping[j]
         pairs = [p for c in targets(j) for p in expand(j, c)]
+        if j in rest_relative:
+            plans[j] = _JointPlan(b, np.eye(3), pairs, follower=False, rest_relative=True)
+            continue
         if not children[j] and b in bvh_leaf_dirs:
             # SMPL leaf (head, toes, hand) whose BVH joint has a segment: align the two segments.
             plans[j] = _JointPlan(b, _min_rotation(_leaf_direction(j, smpl_rest), bvh_leaf_dirs[b]), [], False)
@@ -597,7 +613,10 @@ def _retarget(skel: BvhSkeleton, smpl_rest: np.ndarray, mapping: dict[int, int])
     height = float(np.ptp(rest[:, 1])) if skel.num_joints > 1 else 0.0
     eps = max(0.01 * height, 1e-9)
 
-    plans = _plan(rest, smpl_rest, mapping, eps, _bvh_leaf_directions(skel, rest, W, eps))
+    # A clavicle that starts on the spine (CMU's LeftCollar on Chest2) pivots elsewhere than SMPL's.
+    rest_relative = {j for j in _COLLARS if j in mapping and skel.parents[mapping[j]] >= 0
+                     and np.linalg.norm(rest[mapping[j]] - rest[skel.parents[mapping[j]]]) <= eps}
+    plans = _plan(rest, smpl_rest, mapping, eps, _bvh_leaf_directions(skel, rest, W, eps), rest_relative)
     F = skel.num_frames
     G = np.empty((F, NUM_JOINTS, 3, 3))
     for j in range(NUM_JOINTS):
@@ -615,6 +634,9 @@ def _retarget(skel: BvhSkeleton, smpl_rest: np.ndarray, mapping: dict[int, int])
             frame = int(skel.parents[pa.pairs[0][1]]) if len(pa.pairs) == 1 else pa.bvh
             rel = np.swapaxes(Q[:, frame], -1, -2) @ Q[:, plan.bvh]
             G[:, j] = G[:, a] @ pa.align.T @ rel @ pa.align
+            continue
+        if plan.rest_relative:
+            G[:, j] = Q[:, plan.bvh]
             continue
         M = Q[:, plan.bvh] @ plan.align
         if len(plan.pairs) == 1 and j != 0:  # the pelvis keeps the BVH root's own orientation
