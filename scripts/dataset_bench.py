@@ -29,6 +29,10 @@ THESIS_ARCSIM_HOURS = 180
 
 
 def _commit() -> str:
+    """The git commit measured; the device machine's copy of the tree has no (or a stale) .git, so
+    the caller passes the commit in SIMGEN_COMMIT there."""
+    if os.environ.get("SIMGEN_COMMIT"):
+        return os.environ["SIMGEN_COMMIT"]
     root = Path(__file__).resolve().parents[1]
     try:
         head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=root, capture_output=True, text=True,

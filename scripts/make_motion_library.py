@@ -143,7 +143,7 @@ def build_cmu(body, mocap_dir: Path) -> list:
             clip = trim(clip, *window)
         clip = put_on_floor(clip, body)
         # The capture's arms touch the actor's sides; on this body they sink into the torso (and the
-        # hands into the hips): turn them out, for the mean body and the widest shape of the presets.
+        # hands into the hips): turn them out, for the mean body and the widest waist of the presets.
         clip = separate_arms(clip, body, betas=CMU_CLEAR_SHAPES,
                              progress=lambda k, n, name=name: print(f"\rseparate_arms {name}: {k}/{n}", end="",
                                                                      file=sys.stderr))

@@ -12,7 +12,7 @@ import numpy as np
 
 from simgen.errors import InputError
 
-__all__ = ["SurfaceProjection", "project_to_surface"]
+__all__ = ["SurfaceProjection", "project_to_surface", "vertex_normals"]
 
 
 @dataclass
@@ -70,3 +70,18 @@ def project_to_surface(points, vertices, faces, *, device: str | None = "cpu") -
         face=face.numpy().astype(np.int64),
         bary=bary.numpy().astype(np.float64),
     )
+
+
+def vertex_normals(vertices, faces) -> np.ndarray:
+    """Area-weighted unit vertex normals of a triangle mesh (outward for counter-clockwise faces).
+
+    vertices [m], shape (V, 3); faces, shape (F, 3). Returns (V, 3) float64; a vertex of no face
+    gets the zero vector.
+    """
+    v = np.asarray(vertices, dtype=np.float64)
+    f = np.asarray(faces, dtype=np.int64)
+    fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    vn = np.zeros_like(v)
+    for k in range(3):
+        np.add.at(vn, f[:, k], fn)
+    return vn / np.maximum(np.linalg.norm(vn, axis=1, keepdims=True), 1e-300)

@@ -50,6 +50,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from simgen.body.surface import vertex_normals
 from simgen.garment.templates import CLEARANCE, EXPECTED_OPENINGS, TEMPLATE_NAMES
 
 __all__ = [
@@ -183,14 +184,6 @@ def _closed_signed_volume(vertices: np.ndarray, faces: np.ndarray, loops: list[n
     return float(np.einsum("ij,ij->i", p0, np.cross(p1, p2)).sum() / 6.0)
 
 
-def _vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    fn = np.cross(vertices[faces[:, 1]] - vertices[faces[:, 0]], vertices[faces[:, 2]] - vertices[faces[:, 0]])
-    vn = np.zeros_like(vertices)
-    for k in range(3):
-        np.add.at(vn, faces[:, k], fn)
-    return vn / np.maximum(np.linalg.norm(vn, axis=1, keepdims=True), 1e-300)
-
-
 # ----------------------------------------------------------------------------------- the check
 def check_garment(garment, body, *, template: str | None = None) -> CheckReport:
     """Check a garment against the quality contract (module docstring) on ``body`` in rest pose.
@@ -250,7 +243,7 @@ def check_garment(garment, body, *, template: str | None = None) -> CheckReport:
 
     proj = project_to_surface(v, body.v_template, body.faces)
     sd = proj.signed_distance
-    normals = _vertex_normals(v, f)
+    normals = vertex_normals(v, f)
     away = v - proj.closest
     away_len = np.linalg.norm(away, axis=1)
     valid = away_len > 1e-6

@@ -9,14 +9,17 @@ which then lies inside the other), sleeves and torso are pulled into each other 
 
 :func:`separate_arms` fixes the motion, not the cloth. In every frame where points of an arm lie
 inside the torso or a leg (tested ``clearance`` outside the arm's skin, by the generalised winding
-number of the torso-and-legs surface), it turns the upper arm about the shoulder joint, by the
-smallest multiple of ``step_deg`` that takes every such point out, about the axis along which the
-points' depths push (the sum of (point - shoulder) x (way out) weighted by depth). The turn is
-stored in the collar's frame, so it follows the body. The corrections are then spread over time
-(each frame takes the largest turn within ``smooth_s`` around it, then a Gaussian of half that
-width) so that the arm eases out and back instead of jumping. Points near the shoulder (the
-armpit's skin fold, which no pose removes) are not tested: only arm vertices farther from the
-shoulder joint than ``reach_from_shoulder`` times the upper arm's length.
+number of the torso-and-legs surface), it turns the upper arm about the shoulder joint by the
+smallest multiple of ``step_deg`` (found by bisection, at most ``max_angle_deg``) that takes every
+such point out. Four axes are tried and the one needing the smallest turn wins: the axis along
+which the points' depths push (the sum of (point - shoulder) x (way out) weighted by depth), and
+turning the arm outward, forward and backward in the body's frame. The turn is stored in the
+collar's frame, so it follows the body. The corrections are then spread over time (each frame
+takes the largest turn within ``smooth_s`` around it, then a Gaussian of half that width) so that
+the arm eases out and back instead of jumping; a second pass tops up frames that the spreading left
+short where neighbouring frames needed other axes. Points near the shoulder (the armpit's skin
+fold, which no pose removes) are not tested: only arm vertices farther from the shoulder joint
+than ``reach_from_shoulder`` times the upper arm's length.
 
 Several body shapes can be given: each frame then takes the turn that clears the widest of them.
 """
@@ -28,6 +31,7 @@ import copy
 import numpy as np
 
 from simgen.body.model import SMPL_JOINT_NAMES, BodyModel
+from simgen.body.surface import vertex_normals
 from simgen.errors import InputError
 from simgen.motion.clip import MotionClip
 from simgen.rotations import axis_angle_to_matrix, matrix_to_axis_angle
@@ -73,15 +77,6 @@ class _Obstacle:
         return depth, way
 
 
-def _vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    tri = vertices[faces]
-    fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    n = np.zeros_like(vertices)
-    for k in range(3):
-        np.add.at(n, faces[:, k], fn)
-    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
-
-
 class _Setup:
     """Per body shape: which vertices are tested for each arm and which faces are obstacles."""
 
@@ -105,7 +100,7 @@ class _Setup:
 def _frame_state(setup: _Setup, pose: np.ndarray, trans: np.ndarray, clearance: float):
     out = setup.body.forward(betas=setup.betas, pose=pose[None], trans=trans[None])
     v = out.vertices[0]
-    normals = _vertex_normals(v, np.asarray(setup.body.faces, dtype=np.int64))
+    normals = vertex_normals(v, np.asarray(setup.body.faces, dtype=np.int64))
     obstacle = _Obstacle(v, setup.obstacle_faces)
     points = {side: v[ids] + clearance * normals[ids] for side, ids in setup.test.items()}
     return out, obstacle, points
@@ -115,11 +110,13 @@ def arm_torso_penetration(clip: MotionClip, body: BodyModel, *, betas=None, clea
                           reach_from_shoulder: float = 0.4) -> dict[str, np.ndarray]:
     """Per frame and arm, the deepest point [m] of the arm inside the torso or a leg (0 if none).
 
-    Returns {"left": (T,), "right": (T,)}; points are tested ``clearance`` [m] outside the skin,
+    betas: (B',) one body shape (default zeros). Returns {"left": (T,), "right": (T,)}; points are tested ``clearance`` [m] outside the skin,
     arm vertices farther than ``reach_from_shoulder`` upper-arm lengths from the shoulder joint.
     """
-    setup = _Setup(body, body.check_betas(np.zeros(body.num_betas) if betas is None else betas)[0:1],
-                   reach_from_shoulder)
+    shape = body.check_betas(np.zeros(body.num_betas) if betas is None else betas)
+    if shape.shape[0] != 1:
+        raise InputError(f"arm_torso_penetration takes one body shape, got betas of shape {np.shape(betas)}")
+    setup = _Setup(body, shape, reach_from_shoulder)
     result = {side: np.zeros(clip.num_frames) for side in _ARMS}
     for t in range(clip.num_frames):
         _, obstacle, points = _frame_state(setup, clip.poses[t], clip.trans[t], clearance)
