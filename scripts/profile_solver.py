@@ -7,6 +7,11 @@ stepping together. After warm-up frames, ``--frames`` frames run eagerly with th
 The same frame is then captured as a CUDA graph and its replay timed, so the JSON shows how the
 frame time splits into kernel work and what is left (launch gaps, idle).
 
+``term_split`` then times the membrane and bending launches alone with each output on its own
+(energy only, gradient only, gradient + Hessian, all three): the energy goes into one scalar per
+instance, the gradient and Hessian blocks into per-vertex and per-slot addresses, so the split tells
+which of the two kinds of atomics costs the time.
+
     python scripts/profile_solver.py --device cuda:0 --batches 1 64 --self-contact both --out profile.json
 """
 
@@ -106,7 +111,9 @@ def profile(garment, body, n: int, *, device: str, frames: int, substeps: int, f
             if f >= 2:
                 times.append(time.perf_counter() - t0)
         graph_ms = float(np.median(times)) * 1e3
+    terms_ms = term_split(model, state.positions, solver.hessian, device)
     return {
+        "term_split_ms_per_launch": terms_ms,
         "instances": n, "vertices": model.num_vertices, "self_contact": self_contact, "frames": frames,
         "substeps": substeps, "cg_per_newton": cg,
         "kernel_ms_per_frame": gpu_ms, "launches_per_frame": sum(e["launches_per_frame"] for e in kernels),
@@ -114,6 +121,28 @@ def profile(garment, body, n: int, *, device: str, frames: int, substeps: int, f
         "phases": dict(sorted(phases.items(), key=lambda kv: -kv[1]["ms_per_frame"])),
         "top_kernels": kernels[:20],
     }
+
+
+def term_split(model, positions, hessian, device: str, repeats: int = 20) -> dict:
+    """Milliseconds per launch of membrane and bending with each output alone and all together."""
+    from simgen.sim.energies import eval_bending, eval_membrane
+
+    energy, gradient = model.new_energy(), model.new_gradient()
+    outputs = {"energy": dict(energy=energy), "gradient": dict(gradient=gradient),
+               "gradient+hessian": dict(gradient=gradient, hessian=hessian),
+               "all": dict(energy=energy, gradient=gradient, hessian=hessian)}
+    split = {}
+    for name, term in (("membrane", eval_membrane), ("bending", eval_bending)):
+        split[name] = {}
+        for label, kwargs in outputs.items():
+            term(model, positions, **kwargs)  # warm-up (module load)
+            wp.synchronize_device(device)
+            t0 = time.perf_counter()
+            for _ in range(repeats):
+                term(model, positions, **kwargs)
+            wp.synchronize_device(device)
+            split[name][label] = (time.perf_counter() - t0) * 1e3 / repeats
+    return split
 
 
 def main() -> None:
@@ -146,7 +175,8 @@ def main() -> None:
                           fps=args.fps, self_contact=sc)
             result["runs"].append(row)
             summary = {k: row[k] for k in ("instances", "self_contact", "kernel_ms_per_frame", "launches_per_frame",
-                                           "eager_ms_per_frame", "graph_ms_per_frame", "cg_per_newton")}
+                                           "eager_ms_per_frame", "graph_ms_per_frame", "cg_per_newton",
+                                           "term_split_ms_per_launch")}
             summary["phases_ms"] = {p: round(v["ms_per_frame"], 3) for p, v in row["phases"].items()}
             summary["top"] = [(e["name"][:40], round(e["ms_per_frame"], 2), e["launches_per_frame"])
                               for e in row["top_kernels"][:10]]

@@ -9,6 +9,7 @@ of :mod:`simgen.sim.energies.reference`, and the float32 kernels against those r
 """
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -328,6 +329,50 @@ def test_inertia_fd_and_mass_over_h2(crumpled):
     assert e.sum() == pytest.approx(e_ref.sum(), rel=1e-12) and rel_err(g, g_ref) < 1e-12
     with pytest.raises(InputError):
         eval_inertia(m, vec3_array(m, x), x_hat, 0.0, energy=m.new_energy())
+
+
+# -- batches: per-instance sums ---------------------------------------------------------------------
+
+def _cuda_available() -> bool:
+    try:
+        return wp.is_cuda_available()
+    except Exception:  # noqa: BLE001 - no driver at all
+        return False
+
+
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda:0", marks=[
+    pytest.mark.gpu, pytest.mark.skipif(not _cuda_available(), reason="needs CUDA")])])
+def test_batch_energies_are_each_instances_own(device):
+    # Instances of 15x15, 9x9 and 23x23 grids (with damping, so every dense term runs), concatenated:
+    # on CUDA their boundaries fall inside blocks of 256 threads, where the block reduction must give
+    # each instance exactly its own energy.
+    material = replace(get_material("cotton"), damping_stiffness=2.0e-3, damping_mass=0.5)
+    rng = np.random.default_rng(7)
+    singles, xs = [], []
+    for n in (15, 9, 23):
+        v, f = grid(n, 0.3)
+        v = v + 0.004 * rng.normal(size=v.shape)
+        singles.append(ClothModel.from_mesh(v, f, material, device=device))
+        xs.append(v + 0.01 * rng.normal(size=v.shape))
+    batch = ClothModel.concatenate(singles)
+    dt = 1.0 / 300.0
+    x_all = np.concatenate(xs)
+
+    def energies(model, x, x_other, term):
+        e = model.new_energy()
+        xw = wp.array(x.astype(np.float32), dtype=model.vec3, device=device)
+        ow = wp.array(x_other.astype(np.float32), dtype=model.vec3, device=device)
+        if term in (eval_inertia, eval_damping):
+            term(model, xw, ow, dt, energy=e)
+        else:
+            term(model, xw, energy=e)
+        return e.numpy().astype(np.float64)
+
+    for term in (eval_membrane, eval_bending, eval_gravity, eval_inertia, eval_damping):
+        own = [energies(m, x, m.host.rest_positions, term)[0] for m, x in zip(singles, xs)]
+        together = energies(batch, x_all, np.concatenate([m.host.rest_positions for m in singles]), term)
+        assert np.all(np.abs(np.array(own)) > 0), term.__name__
+        assert together == pytest.approx(own, rel=1e-4), term.__name__
 
 
 # -- body contact -----------------------------------------------------------------------------------

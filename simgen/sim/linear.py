@@ -28,10 +28,10 @@ per-instance reduction p.q, (2) x += alpha p, r -= alpha q, z = M^-1 r fused wit
 thread: each instance's beta and convergence test, the iteration count and the all-done flag.
 The recurrence for q is exact in exact arithmetic (H is linear); in float32 it drifts from H p by
 round-off only, far below the 1e-3 tolerance the solver uses. Reductions are segmented block
-reductions: a block of ``REDUCE_BLOCK`` vertices sums its first instance's share in a tile and adds
-it with one atomic (vertices of a second instance in the block, at an instance boundary, add
-theirs directly). Per-vertex atomics into one scalar per instance serialise on that address: at
-64 instances they took 63% of the frame (BENCHMARKS.md).
+reductions (simgen.sim.energies._common.reduce_funcs): a block of ``REDUCE_BLOCK`` vertices sums
+its first instance's share in a tile and adds it with one atomic. Per-vertex atomics into one
+scalar per instance serialise on that address: at 64 instances they took 63% of the frame
+(BENCHMARKS.md).
 """
 
 
@@ -40,13 +40,9 @@ from types import SimpleNamespace
 
 import warp as wp
 
-from simgen.sim.energies._common import module_name, scalar_types
+from simgen.sim.energies._common import REDUCE_BLOCK, module_name, reduce_block, reduce_funcs, scalar_types
 
 __all__ = ["BlockJacobiPCG", "pcg_kernels", "REDUCE_BLOCK"]
-
-# Threads per block of the reducing kernels on CUDA (Warp runs tile kernels one thread per block on
-# the CPU, where the same code reduces blocks of one).
-REDUCE_BLOCK = 256
 
 
 @functools.cache
@@ -56,6 +52,7 @@ def pcg_kernels(scalar) -> SimpleNamespace:
     vec3, mat33 = T.vec3, T.mat33
     mod = module_name(__name__, scalar)
     zero = scalar(0.0)
+    block_add = reduce_funcs(scalar).block_add
 
     @wp.kernel(enable_backward=False, module=mod)
     def constrain(
@@ -73,24 +70,6 @@ def pcg_kernels(scalar) -> SimpleNamespace:
                 values[k] = wp.identity(n=3, dtype=scalar)
             else:
                 values[k] = mat33()
-
-    @wp.func
-    def block_add(out: wp.array(dtype=scalar), vertex_instance: wp.array(dtype=wp.int32), block: int, lane: int,
-                  i: int, n: int, value: scalar):
-        # Segmented reduction of one value per thread (0 for threads past n) into out[instance]:
-        # the block's first instance through a tile sum and one atomic, any other directly. Every
-        # thread of the block must reach the same call (the tile sum is a block-wide barrier).
-        bd = wp.block_dim()
-        first = vertex_instance[wp.min(block * bd, n - 1)]
-        own = zero
-        if i < n:
-            if vertex_instance[i] == first:
-                own = value
-            else:
-                wp.atomic_add(out, vertex_instance[i], value)
-        total = wp.tile_sum(wp.tile(own))
-        if lane == 0:
-            wp.atomic_add(out, first, total[0])
 
     @wp.kernel(enable_backward=False, module=mod)
     def setup(
@@ -324,7 +303,7 @@ class BlockJacobiPCG:
         self._all_done = wp.zeros(1, dtype=wp.int32, device=dev)
         self._iterations = wp.zeros(1, dtype=wp.int32, device=dev)
         self._running = wp.zeros(1, dtype=wp.int32, device=dev)
-        self._block = REDUCE_BLOCK if wp.get_device(dev).is_cuda else 1
+        self._block = reduce_block(dev)
         self._blocks = (n + self._block - 1) // self._block
 
     def load(self) -> None:

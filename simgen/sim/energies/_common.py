@@ -1,10 +1,18 @@
-"""Shared pieces of the energy kernels: scalar-generic types, Warp module naming, PSD projection.
+"""Shared pieces of the energy kernels: scalar-generic types, Warp module naming, PSD projection,
+per-instance block reductions.
 
 Every energy kernel is built by a factory for one scalar type (``wp.float32`` on the device,
 ``wp.float64`` for the finite-difference tests), so the very code the solver runs is what the
 float64 tests check. The kernels of one energy file and one scalar type share one Warp module
 (``<file module>.<scalar>``), so Warp's kernel cache works across runs and a float32 run never
 compiles the float64 code.
+
+Per-instance sums (the energy of each instance, the PCG's dot products) are segmented block
+reductions (:func:`reduce_funcs`, :func:`launch_blocked`): elements are stored instance by instance,
+so a block of ``REDUCE_BLOCK`` threads sums its first instance's share in a tile and adds it with
+one atomic, and the elements of a second instance in the block (at an instance boundary) add theirs
+directly. One atomic per element into one scalar per instance serialises on that address: at 64
+T-shirts the energy alone took 0.8 ms of a 1.9 ms membrane launch (BENCHMARKS.md).
 """
 
 import functools
@@ -16,9 +24,13 @@ import warp as wp
 from simgen.errors import InputError
 
 __all__ = ["SCALARS", "scalar_types", "module_name", "math_funcs", "check_scalar", "resolve_outputs",
-           "check_penalty_params"]
+           "check_penalty_params", "reduce_funcs", "launch_blocked", "REDUCE_BLOCK"]
 
 SCALARS = (wp.float32, wp.float64)
+
+# Threads per block of the reducing kernels on CUDA (Warp runs tile kernels one thread per block on
+# the CPU, where the same code reduces blocks of one).
+REDUCE_BLOCK = 256
 
 
 def check_scalar(scalar) -> None:
@@ -114,6 +126,46 @@ def math_funcs(scalar) -> SimpleNamespace:
         return out
 
     return SimpleNamespace(project_psd6=project_psd6)
+
+
+@functools.cache
+def reduce_funcs(scalar) -> SimpleNamespace:
+    """``block_add(out, instance_of, block, lane, i, n, value)``: adds each thread's value (element
+    i < n; pass 0 past n) to ``out[instance_of[i]]`` by a segmented block reduction (module doc).
+    Every thread of the block must reach the same call: the tile sum is a block-wide barrier, so a
+    kernel computes its value under ``if i < n`` and calls this outside any branch that differs
+    between threads."""
+    zero = scalar(0.0)
+
+    @wp.func
+    def block_add(out: wp.array(dtype=scalar), instance_of: wp.array(dtype=wp.int32), block: int, lane: int,
+                  i: int, n: int, value: scalar):
+        first = instance_of[wp.min(block * wp.block_dim(), n - 1)]
+        own = zero
+        if i < n:
+            if instance_of[i] == first:
+                own = value
+            else:
+                wp.atomic_add(out, instance_of[i], value)
+        total = wp.tile_sum(wp.tile(own))
+        if lane == 0:
+            wp.atomic_add(out, first, total[0])
+
+    return SimpleNamespace(block_add=block_add)
+
+
+def reduce_block(device) -> int:
+    """Threads per block of the reducing kernels on ``device``."""
+    return REDUCE_BLOCK if wp.get_device(device).is_cuda else 1
+
+
+def launch_blocked(kernel, n: int, device, inputs: list) -> None:
+    """Launch a reducing kernel over ``n`` elements in blocks; ``n`` is appended to ``inputs`` and the
+    kernel reads its element as ``block * wp.block_dim() + lane`` from ``block, lane = wp.tid()``."""
+    if n <= 0:
+        return
+    block = reduce_block(device)
+    wp.launch_tiled(kernel, dim=[(n + block - 1) // block], block_dim=block, device=device, inputs=[*inputs, int(n)])
 
 
 def resolve_outputs(energy, gradient, hessian):

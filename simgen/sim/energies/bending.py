@@ -25,7 +25,7 @@ from types import SimpleNamespace
 
 import warp as wp
 
-from simgen.sim.energies._common import module_name, resolve_outputs, scalar_types
+from simgen.sim.energies._common import launch_blocked, module_name, reduce_funcs, resolve_outputs, scalar_types
 
 __all__ = ["eval_bending", "bending_funcs", "bending_kernels"]
 
@@ -118,10 +118,12 @@ def bending_funcs(scalar) -> SimpleNamespace:
 
 @functools.cache
 def bending_kernels(scalar) -> SimpleNamespace:
-    """The bending kernel for one scalar type (``.bending``, one thread per hinge)."""
+    """The bending kernel for one scalar type (``.bending``, one thread per hinge, launched in
+    blocks: the energy is a block reduction per instance)."""
     T = scalar_types(scalar)
     vec3, mat33 = T.vec3, T.mat33
     fn = bending_funcs(scalar)
+    block_add = reduce_funcs(scalar).block_add
 
     @wp.kernel(enable_backward=False, module=module_name(__name__, scalar))
     def bending(
@@ -138,18 +140,23 @@ def bending_kernels(scalar) -> SimpleNamespace:
         energy: wp.array(dtype=scalar),
         grad: wp.array(dtype=vec3),
         hess: wp.array(dtype=mat33),
+        n: int,
     ):
-        e = wp.tid()
-        theta, g0, g1, g2, g3 = fn.dihedral_angle_grad(
-            x[hinges[e, 0]], x[hinges[e, 1]], x[hinges[e, 2]], x[hinges[e, 3]])
-        k = stiffness[e] * scale
-        delta = fn.wrap_angle(theta - rest_angle[e])
-        if want_energy != 0:
-            wp.atomic_add(energy, hinge_instance[e], scalar(0.5) * k * delta * delta)
-        if want_grad != 0:
-            fn.add_hinge_gradient(grad, hinges, e, k * delta, g0, g1, g2, g3)
-        if want_hess != 0:
-            fn.add_hinge_gn_hessian(hess, hinge_slots, e, k, g0, g1, g2, g3)
+        block, lane = wp.tid()
+        e = block * wp.block_dim() + lane
+        value = scalar(0.0)
+        if e < n:
+            theta, g0, g1, g2, g3 = fn.dihedral_angle_grad(
+                x[hinges[e, 0]], x[hinges[e, 1]], x[hinges[e, 2]], x[hinges[e, 3]])
+            k = stiffness[e] * scale
+            delta = fn.wrap_angle(theta - rest_angle[e])
+            value = scalar(0.5) * k * delta * delta
+            if want_grad != 0:
+                fn.add_hinge_gradient(grad, hinges, e, k * delta, g0, g1, g2, g3)
+            if want_hess != 0:
+                fn.add_hinge_gn_hessian(hess, hinge_slots, e, k, g0, g1, g2, g3)
+        if want_energy != 0:  # uniform over the launch, so every thread of a block reaches the tile sum
+            block_add(energy, hinge_instance, block, lane, e, n, value)
 
     return SimpleNamespace(bending=bending)
 
@@ -165,6 +172,6 @@ def eval_bending(model, positions, *, energy=None, gradient=None, hessian=None, 
     if model.num_hinges == 0 or not (we or wg or wh):
         return
     k = bending_kernels(model.scalar).bending
-    wp.launch(k, dim=model.num_hinges, device=model.device, inputs=[
+    launch_blocked(k, model.num_hinges, model.device, [
         positions, model.hinges, model.hinge_stiffness, model.hinge_rest_angle, model.hinge_instance,
         model.hinge_slots, scale, we, wg, wh, e, g, h])

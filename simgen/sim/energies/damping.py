@@ -25,7 +25,7 @@ from types import SimpleNamespace
 import warp as wp
 
 from simgen.errors import InputError
-from simgen.sim.energies._common import math_funcs, module_name, resolve_outputs, scalar_types
+from simgen.sim.energies._common import launch_blocked, math_funcs, module_name, reduce_funcs, resolve_outputs, scalar_types
 from simgen.sim.energies.bending import bending_funcs
 from simgen.sim.energies.membrane import membrane_funcs
 
@@ -35,12 +35,13 @@ __all__ = ["eval_damping", "damping_kernels"]
 @functools.cache
 def damping_kernels(scalar) -> SimpleNamespace:
     """Kernels for one scalar type: ``.membrane`` (per triangle), ``.bending`` (per hinge),
-    ``.mass`` (per vertex)."""
+    ``.mass`` (per vertex), each launched in blocks (the energy is a block reduction per instance)."""
     T = scalar_types(scalar)
     vec3, mat22, mat33 = T.vec3, T.mat22, T.mat33
     mf = membrane_funcs(scalar)
     bf = bending_funcs(scalar)
     project_psd6 = math_funcs(scalar).project_psd6
+    block_add = reduce_funcs(scalar).block_add
     zero = scalar(0.0)
     mod = module_name(__name__, scalar)
 
@@ -65,29 +66,34 @@ def damping_kernels(scalar) -> SimpleNamespace:
         energy: wp.array(dtype=scalar),
         grad: wp.array(dtype=vec3),
         hess: wp.array(dtype=mat33),
+        n: int,
     ):
-        t = wp.tid()
-        c = beta[t] * inv_dt * rest_area[t] * scale
-        if c <= zero:
-            return
-        i0 = tris[t, 0]
-        i1 = tris[t, 1]
-        i2 = tris[t, 2]
-        dm_inv = inv_rest[t]
-        f = mf.deformation_gradient(x[i0], x[i1], x[i2], dm_inv)
-        f_start = mf.deformation_gradient(x_start[i0], x_start[i1], x_start[i2], dm_inv)
-        dg = mf.green_strain(f) - mf.green_strain(f_start)
-        if want_energy != 0:
-            wp.atomic_add(energy, tri_instance[t], c * mf.stvk_density(dg, lam[t], mu[t]))
-        if want_grad != 0 or want_hess != 0:
-            s = mf.stvk_stress(dg, lam[t], mu[t])
-            if want_grad != 0:
-                mf.add_triangle_gradient(grad, i0, i1, i2, f * s, dm_inv, c)
-            if want_hess != 0:
-                h = mf.stvk_hessian(f, s, lam[t], mu[t])
-                if project != 0 and not mf.s_is_psd(s):
-                    h = project_psd6(h)
-                mf.add_triangle_hessian(hess, tri_slots, t, h, dm_inv, c)
+        block, lane = wp.tid()
+        t = block * wp.block_dim() + lane
+        e = zero
+        c = zero
+        if t < n:
+            c = beta[t] * inv_dt * rest_area[t] * scale
+        if c > zero:
+            i0 = tris[t, 0]
+            i1 = tris[t, 1]
+            i2 = tris[t, 2]
+            dm_inv = inv_rest[t]
+            f = mf.deformation_gradient(x[i0], x[i1], x[i2], dm_inv)
+            f_start = mf.deformation_gradient(x_start[i0], x_start[i1], x_start[i2], dm_inv)
+            dg = mf.green_strain(f) - mf.green_strain(f_start)
+            e = c * mf.stvk_density(dg, lam[t], mu[t])
+            if want_grad != 0 or want_hess != 0:
+                s = mf.stvk_stress(dg, lam[t], mu[t])
+                if want_grad != 0:
+                    mf.add_triangle_gradient(grad, i0, i1, i2, f * s, dm_inv, c)
+                if want_hess != 0:
+                    h = mf.stvk_hessian(f, s, lam[t], mu[t])
+                    if project != 0 and not mf.s_is_psd(s):
+                        h = project_psd6(h)
+                    mf.add_triangle_hessian(hess, tri_slots, t, h, dm_inv, c)
+        if want_energy != 0:  # uniform over the launch, so every thread of a block reaches the tile sum
+            block_add(energy, tri_instance, block, lane, t, n, e)
 
     @wp.kernel(enable_backward=False, module=mod)
     def bending(
@@ -106,24 +112,29 @@ def damping_kernels(scalar) -> SimpleNamespace:
         energy: wp.array(dtype=scalar),
         grad: wp.array(dtype=vec3),
         hess: wp.array(dtype=mat33),
+        n: int,
     ):
-        e = wp.tid()
-        k = beta[e] * inv_dt * stiffness[e] * scale
-        if k <= zero:
-            return
-        j0 = hinges[e, 0]
-        j1 = hinges[e, 1]
-        j2 = hinges[e, 2]
-        j3 = hinges[e, 3]
-        theta, g0, g1, g2, g3 = bf.dihedral_angle_grad(x[j0], x[j1], x[j2], x[j3])
-        theta_start = bf.dihedral_angle(x_start[j0], x_start[j1], x_start[j2], x_start[j3])
-        delta = bf.wrap_angle(theta - theta_start)
-        if want_energy != 0:
-            wp.atomic_add(energy, hinge_instance[e], scalar(0.5) * k * delta * delta)
-        if want_grad != 0:
-            bf.add_hinge_gradient(grad, hinges, e, k * delta, g0, g1, g2, g3)
-        if want_hess != 0:
-            bf.add_hinge_gn_hessian(hess, hinge_slots, e, k, g0, g1, g2, g3)
+        block, lane = wp.tid()
+        e = block * wp.block_dim() + lane
+        value = zero
+        k = zero
+        if e < n:
+            k = beta[e] * inv_dt * stiffness[e] * scale
+        if k > zero:
+            j0 = hinges[e, 0]
+            j1 = hinges[e, 1]
+            j2 = hinges[e, 2]
+            j3 = hinges[e, 3]
+            theta, g0, g1, g2, g3 = bf.dihedral_angle_grad(x[j0], x[j1], x[j2], x[j3])
+            theta_start = bf.dihedral_angle(x_start[j0], x_start[j1], x_start[j2], x_start[j3])
+            delta = bf.wrap_angle(theta - theta_start)
+            value = scalar(0.5) * k * delta * delta
+            if want_grad != 0:
+                bf.add_hinge_gradient(grad, hinges, e, k * delta, g0, g1, g2, g3)
+            if want_hess != 0:
+                bf.add_hinge_gn_hessian(hess, hinge_slots, e, k, g0, g1, g2, g3)
+        if want_energy != 0:  # uniform over the launch, so every thread of a block reaches the tile sum
+            block_add(energy, hinge_instance, block, lane, e, n, value)
 
     @wp.kernel(enable_backward=False, module=mod)
     def mass(
@@ -141,18 +152,23 @@ def damping_kernels(scalar) -> SimpleNamespace:
         energy: wp.array(dtype=scalar),
         grad: wp.array(dtype=vec3),
         hess: wp.array(dtype=mat33),
+        n: int,
     ):
-        i = wp.tid()
-        k = alpha[i] * vertex_mass[i] * inv_dt * scale
-        if k <= zero:
-            return
-        d = x[i] - x_start[i]
-        if want_energy != 0:
-            wp.atomic_add(energy, vertex_instance[i], scalar(0.5) * k * wp.dot(d, d))
-        if want_grad != 0:
-            wp.atomic_add(grad, i, k * d)
-        if want_hess != 0:
-            wp.atomic_add(hess, diag_slots[i], k * wp.identity(n=3, dtype=scalar))
+        block, lane = wp.tid()
+        i = block * wp.block_dim() + lane
+        e = zero
+        k = zero
+        if i < n:
+            k = alpha[i] * vertex_mass[i] * inv_dt * scale
+        if k > zero:
+            d = x[i] - x_start[i]
+            e = scalar(0.5) * k * wp.dot(d, d)
+            if want_grad != 0:
+                wp.atomic_add(grad, i, k * d)
+            if want_hess != 0:
+                wp.atomic_add(hess, diag_slots[i], k * wp.identity(n=3, dtype=scalar))
+        if want_energy != 0:  # uniform over the launch, so every thread of a block reaches the tile sum
+            block_add(energy, vertex_instance, block, lane, i, n, e)
 
     return SimpleNamespace(membrane=membrane, bending=bending, mass=mass)
 
@@ -175,14 +191,14 @@ def eval_damping(model, positions, start_positions, dt: float, *, energy=None, g
     inv_dt = 1.0 / dt
     dev = model.device
     if model.num_triangles:
-        wp.launch(k.membrane, dim=model.num_triangles, device=dev, inputs=[
+        launch_blocked(k.membrane, model.num_triangles, dev, [
             positions, start_positions, model.triangles, model.tri_inv_rest, model.tri_rest_area, model.tri_lambda,
             model.tri_mu, model.tri_damping, model.tri_instance, model.tri_slots, inv_dt, scale, int(project),
             we, wg, wh, e, g, h])
     if model.num_hinges:
-        wp.launch(k.bending, dim=model.num_hinges, device=dev, inputs=[
+        launch_blocked(k.bending, model.num_hinges, dev, [
             positions, start_positions, model.hinges, model.hinge_stiffness, model.hinge_damping,
             model.hinge_instance, model.hinge_slots, inv_dt, scale, we, wg, wh, e, g, h])
-    wp.launch(k.mass, dim=model.num_vertices, device=dev, inputs=[
+    launch_blocked(k.mass, model.num_vertices, dev, [
         positions, start_positions, model.vertex_mass, model.vertex_damping_mass, model.vertex_instance,
         model.diag_slots, inv_dt, scale, we, wg, wh, e, g, h])

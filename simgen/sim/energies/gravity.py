@@ -8,7 +8,7 @@ from types import SimpleNamespace
 import warp as wp
 
 from simgen.errors import InputError
-from simgen.sim.energies._common import module_name, resolve_outputs, scalar_types
+from simgen.sim.energies._common import launch_blocked, module_name, reduce_funcs, resolve_outputs, scalar_types
 
 __all__ = ["GravityParams", "eval_gravity", "gravity_kernels"]
 
@@ -28,8 +28,10 @@ class GravityParams:
 
 @functools.cache
 def gravity_kernels(scalar) -> SimpleNamespace:
-    """The gravity kernel for one scalar type (``.gravity``, one thread per vertex)."""
+    """The gravity kernel for one scalar type (``.gravity``, one thread per vertex, launched in
+    blocks: the energy is a block reduction per instance)."""
     vec3 = scalar_types(scalar).vec3
+    block_add = reduce_funcs(scalar).block_add
 
     @wp.kernel(enable_backward=False, module=module_name(__name__, scalar))
     def gravity(
@@ -42,13 +44,18 @@ def gravity_kernels(scalar) -> SimpleNamespace:
         want_grad: int,
         energy: wp.array(dtype=scalar),
         grad: wp.array(dtype=vec3),
+        n: int,
     ):
-        i = wp.tid()
-        m = mass[i] * scale
-        if want_energy != 0:
-            wp.atomic_add(energy, vertex_instance[i], -m * wp.dot(g, x[i]))
-        if want_grad != 0:
-            wp.atomic_add(grad, i, -m * g)
+        block, lane = wp.tid()
+        i = block * wp.block_dim() + lane
+        e = scalar(0.0)
+        if i < n:
+            m = mass[i] * scale
+            e = -m * wp.dot(g, x[i])
+            if want_grad != 0:
+                wp.atomic_add(grad, i, -m * g)
+        if want_energy != 0:  # uniform over the launch, so every thread of a block reaches the tile sum
+            block_add(energy, vertex_instance, block, lane, i, n, e)
 
     return SimpleNamespace(gravity=gravity)
 
@@ -64,5 +71,5 @@ def eval_gravity(model, positions, params: GravityParams = GravityParams(), *, e
     if not (we or wg):
         return
     vec3 = scalar_types(model.scalar).vec3
-    wp.launch(gravity_kernels(model.scalar).gravity, dim=model.num_vertices, device=model.device, inputs=[
+    launch_blocked(gravity_kernels(model.scalar).gravity, model.num_vertices, model.device, [
         positions, model.vertex_mass, model.vertex_instance, vec3(*params.gravity), scale, we, wg, e, g])

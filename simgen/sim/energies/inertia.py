@@ -12,16 +12,18 @@ from types import SimpleNamespace
 import warp as wp
 
 from simgen.errors import InputError
-from simgen.sim.energies._common import module_name, resolve_outputs, scalar_types
+from simgen.sim.energies._common import launch_blocked, module_name, reduce_funcs, resolve_outputs, scalar_types
 
 __all__ = ["eval_inertia", "inertia_kernels"]
 
 
 @functools.cache
 def inertia_kernels(scalar) -> SimpleNamespace:
-    """The inertia kernel for one scalar type (``.inertia``, one thread per vertex)."""
+    """The inertia kernel for one scalar type (``.inertia``, one thread per vertex, launched in
+    blocks: the energy is a block reduction per instance)."""
     T = scalar_types(scalar)
     vec3, mat33 = T.vec3, T.mat33
+    block_add = reduce_funcs(scalar).block_add
 
     @wp.kernel(enable_backward=False, module=module_name(__name__, scalar))
     def inertia(
@@ -37,16 +39,21 @@ def inertia_kernels(scalar) -> SimpleNamespace:
         energy: wp.array(dtype=scalar),
         grad: wp.array(dtype=vec3),
         hess: wp.array(dtype=mat33),
+        n: int,
     ):
-        i = wp.tid()
-        k = mass[i] * inv_dt2
-        d = x[i] - x_hat[i]
-        if want_energy != 0:
-            wp.atomic_add(energy, vertex_instance[i], scalar(0.5) * k * wp.dot(d, d))
-        if want_grad != 0:
-            wp.atomic_add(grad, i, k * d)
-        if want_hess != 0:
-            wp.atomic_add(hess, diag_slots[i], k * wp.identity(n=3, dtype=scalar))
+        block, lane = wp.tid()
+        i = block * wp.block_dim() + lane
+        e = scalar(0.0)
+        if i < n:
+            k = mass[i] * inv_dt2
+            d = x[i] - x_hat[i]
+            e = scalar(0.5) * k * wp.dot(d, d)
+            if want_grad != 0:
+                wp.atomic_add(grad, i, k * d)
+            if want_hess != 0:
+                wp.atomic_add(hess, diag_slots[i], k * wp.identity(n=3, dtype=scalar))
+        if want_energy != 0:  # uniform over the launch, so every thread of a block reaches the tile sum
+            block_add(energy, vertex_instance, block, lane, i, n, e)
 
     return SimpleNamespace(inertia=inertia)
 
@@ -64,6 +71,6 @@ def eval_inertia(model, positions, predicted, dt: float, *, energy=None, gradien
     we, wg, wh, e, g, h = resolve_outputs(energy, gradient, hessian)
     if not (we or wg or wh):
         return
-    wp.launch(inertia_kernels(model.scalar).inertia, dim=model.num_vertices, device=model.device, inputs=[
+    launch_blocked(inertia_kernels(model.scalar).inertia, model.num_vertices, model.device, [
         positions, predicted, model.vertex_mass, model.vertex_instance, model.diag_slots, scale / (dt * dt),
         we, wg, wh, e, g, h])

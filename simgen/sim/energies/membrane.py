@@ -21,7 +21,7 @@ from types import SimpleNamespace
 
 import warp as wp
 
-from simgen.sim.energies._common import math_funcs, module_name, resolve_outputs, scalar_types
+from simgen.sim.energies._common import launch_blocked, math_funcs, module_name, reduce_funcs, resolve_outputs, scalar_types
 
 __all__ = ["eval_membrane", "membrane_funcs", "membrane_kernels"]
 
@@ -129,11 +129,13 @@ def membrane_funcs(scalar) -> SimpleNamespace:
 
 @functools.cache
 def membrane_kernels(scalar) -> SimpleNamespace:
-    """The membrane kernel for one scalar type (``.membrane``, one thread per triangle)."""
+    """The membrane kernel for one scalar type (``.membrane``, one thread per triangle, launched in
+    blocks: the energy is a block reduction per instance)."""
     T = scalar_types(scalar)
     vec3, mat22, mat33 = T.vec3, T.mat22, T.mat33
     fn = membrane_funcs(scalar)
     project_psd6 = math_funcs(scalar).project_psd6
+    block_add = reduce_funcs(scalar).block_add
 
     @wp.kernel(enable_backward=False, module=module_name(__name__, scalar))
     def membrane(
@@ -153,26 +155,31 @@ def membrane_kernels(scalar) -> SimpleNamespace:
         energy: wp.array(dtype=scalar),
         grad: wp.array(dtype=vec3),
         hess: wp.array(dtype=mat33),
+        n: int,
     ):
-        t = wp.tid()
-        i0 = tris[t, 0]
-        i1 = tris[t, 1]
-        i2 = tris[t, 2]
-        dm_inv = inv_rest[t]
-        area = rest_area[t] * scale
-        f = fn.deformation_gradient(x[i0], x[i1], x[i2], dm_inv)
-        g = fn.green_strain(f)
-        if want_energy != 0:
-            wp.atomic_add(energy, tri_instance[t], area * fn.stvk_density(g, lam[t], mu[t]))
-        if want_grad != 0 or want_hess != 0:
-            s = fn.stvk_stress(g, lam[t], mu[t])
-            if want_grad != 0:
-                fn.add_triangle_gradient(grad, i0, i1, i2, f * s, dm_inv, area)
-            if want_hess != 0:
-                h = fn.stvk_hessian(f, s, lam[t], mu[t])
-                if project != 0 and not fn.s_is_psd(s):
-                    h = project_psd6(h)
-                fn.add_triangle_hessian(hess, tri_slots, t, h, dm_inv, area)
+        block, lane = wp.tid()
+        t = block * wp.block_dim() + lane
+        e = scalar(0.0)
+        if t < n:
+            i0 = tris[t, 0]
+            i1 = tris[t, 1]
+            i2 = tris[t, 2]
+            dm_inv = inv_rest[t]
+            area = rest_area[t] * scale
+            f = fn.deformation_gradient(x[i0], x[i1], x[i2], dm_inv)
+            g = fn.green_strain(f)
+            e = area * fn.stvk_density(g, lam[t], mu[t])
+            if want_grad != 0 or want_hess != 0:
+                s = fn.stvk_stress(g, lam[t], mu[t])
+                if want_grad != 0:
+                    fn.add_triangle_gradient(grad, i0, i1, i2, f * s, dm_inv, area)
+                if want_hess != 0:
+                    h = fn.stvk_hessian(f, s, lam[t], mu[t])
+                    if project != 0 and not fn.s_is_psd(s):
+                        h = project_psd6(h)
+                    fn.add_triangle_hessian(hess, tri_slots, t, h, dm_inv, area)
+        if want_energy != 0:  # uniform over the launch, so every thread of a block reaches the tile sum
+            block_add(energy, tri_instance, block, lane, t, n, e)
 
     return SimpleNamespace(membrane=membrane)
 
@@ -191,6 +198,6 @@ def eval_membrane(model, positions, *, energy=None, gradient=None, hessian=None,
     if model.num_triangles == 0 or not (we or wg or wh):
         return
     k = membrane_kernels(model.scalar).membrane
-    wp.launch(k, dim=model.num_triangles, device=model.device, inputs=[
+    launch_blocked(k, model.num_triangles, model.device, [
         positions, model.triangles, model.tri_inv_rest, model.tri_rest_area, model.tri_lambda, model.tri_mu,
         model.tri_instance, model.tri_slots, scale, int(project), we, wg, wh, e, g, h])
