@@ -120,6 +120,50 @@ def test_batched_pcg_solves_each_instance_and_stops_at_max_iterations(dynamic):
     assert capped.iterations() == 3 and capped.residual_ratio() > 1e-12
 
 
+def test_sliced_ell_copy_holds_exactly_the_bsr_matrix():
+    """The PCG's sliced-ELL copy (slices of 32 rows, one straddling two instances, a partial last
+    slice, rows of unequal length) rebuilds the constrained BSR Hessian exactly; padding is zero."""
+    builder = ClothModelBuilder()
+    for nu, nv in ((7, 7), (5, 9)):
+        v, f = grid(nu, nv, 0.1, 0.12)
+        builder.add_instance(v, f, "cotton", pinned=[0])
+    model = builder.finalize(DEVICE, dtype=wp.float64)
+    n = model.num_vertices
+    assert n == 94 and n % 32 != 0 and 32 < model.instance_slice(1).start < 64
+    x = wp.array(model.host.rest_positions + 0.003 * np.random.default_rng(3).normal(size=(n, 3)),
+                 dtype=wp.vec3d, device=DEVICE)
+    H = model.new_hessian()
+    eval_membrane(model, x, hessian=H)
+    eval_bending(model, x, hessian=H)
+    eval_inertia(model, x, x, 1.0e-2, hessian=H)
+    pcg = BlockJacobiPCG(model, max_iterations=2)
+    pcg.apply_constraints(H)
+    pcg.ell_values.assign(np.full((len(pcg.ell_values), 3, 3), np.nan))  # each solve overwrites every entry
+    pcg.solve(H, wp.array(np.ones((n, 3)), dtype=wp.vec3d, device=DEVICE), model.new_gradient())
+    offsets = model.pattern.offsets
+    lengths = np.diff(offsets)
+    assert lengths.min() < lengths.max()
+    starts, widths = pcg.slice_starts.numpy(), pcg.slice_widths.numpy()
+    columns, values, source = pcg.ell_columns.numpy(), pcg.ell_values.numpy(), pcg.ell_source.numpy()
+    assert len(widths) == 3 and np.array_equal(starts, np.concatenate([[0], np.cumsum(32 * widths)[:-1]]))
+    assert len(values) == len(columns) == len(source) == 32 * widths.sum()
+    assert np.array_equal(np.sort(source[source >= 0]), np.arange(model.nnz))
+    ell = np.zeros((3 * n, 3 * n))
+    for s, (start, width) in enumerate(zip(starts, widths)):
+        assert width == lengths[32 * s:32 * s + 32].max()
+        for j in range(width):
+            for lane in range(32):
+                e, i = start + j * 32 + lane, 32 * s + lane
+                if i >= n or j >= lengths[i]:  # padding: a zero block in the row's own (or the last) column
+                    assert source[e] == -1 and not values[e].any() and columns[e] == min(i, n - 1)
+                    continue
+                assert source[e] == offsets[i] + j
+                c = columns[e]
+                ell[3 * i:3 * i + 3, 3 * c:3 * c + 3] += values[e]
+    bsr = sp.bsr_matrix((H.values.numpy(), model.pattern.columns, offsets), shape=(3 * n, 3 * n)).toarray()
+    assert np.array_equal(ell, bsr)
+
+
 # -- free fall ------------------------------------------------------------------------------------
 
 def test_free_fall_matches_backward_euler_closed_form():

@@ -32,17 +32,26 @@ reductions (simgen.sim.energies._common.reduce_funcs): a block of ``REDUCE_BLOCK
 its first instance's share in a tile and adds it with one atomic. Per-vertex atomics into one
 scalar per instance serialise on that address: at 64 instances they took 63% of the frame
 (BENCHMARKS.md).
+
+The product reads a sliced-ELL copy of H, gathered once per solve: slices of ``ELL_SLICE`` rows
+(a warp) padded to their longest row with zero blocks in the row's own column and stored slot by
+slot, so a warp reads adjacent blocks; read row by row from the BSR, its 32 loads were a row apart
+and the spmv ran at ~0.6 TB/s, a fifth of the H100's bandwidth (BENCHMARKS.md).
 """
 
 
 import functools
 from types import SimpleNamespace
 
+import numpy as np
 import warp as wp
 
 from simgen.sim.energies._common import REDUCE_BLOCK, module_name, reduce_block, reduce_funcs, scalar_types
 
-__all__ = ["BlockJacobiPCG", "pcg_kernels", "REDUCE_BLOCK"]
+__all__ = ["BlockJacobiPCG", "pcg_kernels", "sliced_ell_layout", "REDUCE_BLOCK", "ELL_SLICE"]
+
+# Rows per slice of the sliced-ELL matrix: one CUDA warp, whose loads of one slot step coalesce.
+ELL_SLICE = 32
 
 
 @functools.cache
@@ -70,6 +79,17 @@ def pcg_kernels(scalar) -> SimpleNamespace:
                 values[k] = wp.identity(n=3, dtype=scalar)
             else:
                 values[k] = mat33()
+
+    @wp.kernel(enable_backward=False, module=mod)
+    def gather_ell(values: wp.array(dtype=mat33), ell_source: wp.array(dtype=wp.int32),
+                   ell_values: wp.array(dtype=mat33)):
+        # One thread per ELL entry: the writes coalesce (the strided reads happen once per solve).
+        e = wp.tid()
+        k = ell_source[e]
+        if k >= 0:
+            ell_values[e] = values[k]
+        else:
+            ell_values[e] = mat33()
 
     @wp.kernel(enable_backward=False, module=mod)
     def setup(
@@ -147,9 +167,10 @@ def pcg_kernels(scalar) -> SimpleNamespace:
 
     @wp.kernel(enable_backward=False, module=mod)
     def direction_spmv_dot(
-        offsets: wp.array(dtype=wp.int32),
-        columns: wp.array(dtype=wp.int32),
-        values: wp.array(dtype=mat33),
+        slice_starts: wp.array(dtype=wp.int32),
+        slice_widths: wp.array(dtype=wp.int32),
+        ell_columns: wp.array(dtype=wp.int32),
+        ell_values: wp.array(dtype=mat33),
         vertex_instance: wp.array(dtype=wp.int32),
         z: wp.array(dtype=vec3),
         beta: wp.array(dtype=scalar),
@@ -170,8 +191,11 @@ def pcg_kernels(scalar) -> SimpleNamespace:
             inst = vertex_instance[i]
             if done[inst] == 0:
                 acc = vec3()
-                for k in range(offsets[i], offsets[i + 1]):
-                    acc += values[k] * z[columns[k]]
+                s = i // ELL_SLICE
+                first = slice_starts[s] + i % ELL_SLICE
+                for j in range(slice_widths[s]):
+                    e = first + j * ELL_SLICE
+                    acc += ell_values[e] * z[ell_columns[e]]
                 b = beta[inst]
                 pi = z[i] + b * p[i]
                 qi = acc + b * q[i]
@@ -258,7 +282,7 @@ def pcg_kernels(scalar) -> SimpleNamespace:
         if flag == 0 and iterations[0] < max_iterations:
             running[0] = 1
 
-    return SimpleNamespace(constrain=constrain, setup=setup, start=start, start_all=start_all,
+    return SimpleNamespace(constrain=constrain, gather_ell=gather_ell, setup=setup, start=start, start_all=start_all,
                            direction_spmv_dot=direction_spmv_dot, update_xr=update_xr, control=control)
 
 
@@ -271,7 +295,9 @@ class BlockJacobiPCG:
     dynamic: loop with ``warp.capture_while`` until converged (a conditional node in a CUDA graph);
       False launches a fixed ``max_iterations`` sequence (work stops on the device once converged).
 
-    All arrays are allocated here, so :meth:`solve` allocates nothing (graph-capture safe).
+    All arrays are allocated here, so :meth:`solve` allocates nothing (graph-capture safe), among them
+    the sliced-ELL copy of the Hessian: ``slice_starts``, ``slice_widths``, ``ell_columns`` and
+    ``ell_source`` (:func:`sliced_ell_layout`) and ``ell_values``, which each solve refills.
     """
 
     def __init__(self, model, *, max_iterations: int = 50, tolerance: float = 1.0e-3, dynamic: bool = True) -> None:
@@ -305,6 +331,13 @@ class BlockJacobiPCG:
         self._running = wp.zeros(1, dtype=wp.int32, device=dev)
         self._block = reduce_block(dev)
         self._blocks = (n + self._block - 1) // self._block
+        pattern = model.pattern
+        slice_starts, slice_widths, ell_columns, ell_source = sliced_ell_layout(pattern.offsets, pattern.columns)
+        self.slice_starts = wp.array(slice_starts, dtype=wp.int32, device=dev)
+        self.slice_widths = wp.array(slice_widths, dtype=wp.int32, device=dev)
+        self.ell_columns = wp.array(ell_columns, dtype=wp.int32, device=dev)
+        self.ell_source = wp.array(ell_source, dtype=wp.int32, device=dev)
+        self.ell_values = wp.zeros(len(ell_source), dtype=T.mat33, device=dev)
 
     def load(self) -> None:
         """Compile (or fetch from Warp's cache) the kernels; call before capturing a graph."""
@@ -331,6 +364,8 @@ class BlockJacobiPCG:
         values = getattr(hessian, "values", hessian)
         ni, vi = m.num_instances, m.vertex_instance
         self._rz.zero_()
+        wp.launch(k.gather_ell, dim=len(self.ell_values), device=dev,
+                  inputs=[values, self.ell_source, self.ell_values])
         wp.launch_tiled(k.setup, dim=[self._blocks], block_dim=self._block, device=dev, inputs=[
             values, m.diag_slots, m.vertex_pinned, vi, rhs, x, self.inv_diag, self.r, self.z, self.p, self.q,
             self._rz, n])
@@ -339,17 +374,17 @@ class BlockJacobiPCG:
         wp.launch(k.start_all, dim=1, device=dev,
                   inputs=[self._done, ni, self._iterations, self._all_done, self._running])
         if self.dynamic:
-            wp.capture_while(self._running, self._iteration, values=values, x=x)
+            wp.capture_while(self._running, self._iteration, x=x)
         else:
             for _ in range(self.max_iterations):
-                self._iteration(values=values, x=x)
+                self._iteration(x=x)
 
-    def _iteration(self, values, x) -> None:
+    def _iteration(self, x) -> None:
         m, k = self.model, self.kernels
         n, dev, vi = m.num_vertices, m.device, m.vertex_instance
         wp.launch_tiled(k.direction_spmv_dot, dim=[self._blocks], block_dim=self._block, device=dev, inputs=[
-            m.bsr_offsets, m.bsr_columns, values, vi, self.z, self._beta, self.p, self.q, self._pq, self._done,
-            self._all_done, n])
+            self.slice_starts, self.slice_widths, self.ell_columns, self.ell_values, vi, self.z, self._beta, self.p,
+            self.q, self._pq, self._done, self._all_done, n])
         wp.launch_tiled(k.update_xr, dim=[self._blocks], block_dim=self._block, device=dev, inputs=[
             vi, self.p, self.q, self.inv_diag, self._rz, self._pq, x, self.r, self.z, self._rz_new, self._done,
             self._all_done, n])
@@ -371,3 +406,32 @@ class BlockJacobiPCG:
         rz, rz0 = self._rz.numpy().astype(float), self._rz0.numpy().astype(float)
         ratios = [(max(a, 0.0) / b) ** 0.5 if b > 0 else 0.0 for a, b in zip(rz, rz0)]
         return max(ratios)
+
+
+def sliced_ell_layout(offsets: np.ndarray, columns: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Sliced-ELL layout of a BSR pattern: row offsets ``offsets`` (V+1,), block columns ``columns`` (nnz,).
+
+    Returns int32 (slice_starts, slice_widths, ell_columns, ell_source): per slice of ``ELL_SLICE``
+    rows its first entry and its width (longest row); per entry the block's column and BSR slot, or
+    for padding the row itself and -1. The j-th block of row i (slice s = i // ELL_SLICE) is entry
+    ``slice_starts[s] + j * ELL_SLICE + i % ELL_SLICE``. Rows past V in a partial last slice are never
+    read; their entries point at the last row, so every column indexes a vertex.
+    """
+    offsets = np.asarray(offsets, dtype=np.int64)
+    n = len(offsets) - 1
+    num_slices = -(-n // ELL_SLICE)
+    lengths = np.zeros(num_slices * ELL_SLICE, dtype=np.int64)
+    lengths[:n] = np.diff(offsets)
+    widths = lengths.reshape(num_slices, ELL_SLICE).max(axis=1)
+    starts = np.concatenate([[0], np.cumsum(ELL_SLICE * widths)])
+    slot_rows = np.repeat(np.arange(n), lengths[:n])  # the row of each BSR slot
+    slot_index = np.arange(offsets[-1]) - offsets[slot_rows]  # its position j within the row
+    entry = starts[slot_rows // ELL_SLICE] + slot_index * ELL_SLICE + slot_rows % ELL_SLICE
+    ell_source = np.full(starts[-1], -1, dtype=np.int64)
+    ell_source[entry] = np.arange(offsets[-1])
+    entry_slice = np.repeat(np.arange(num_slices), ELL_SLICE * widths)
+    entry_rows = entry_slice * ELL_SLICE + (np.arange(starts[-1]) - starts[entry_slice]) % ELL_SLICE
+    ell_columns = np.minimum(entry_rows, n - 1)
+    ell_columns[entry] = columns[: offsets[-1]]
+    return (starts[:-1].astype(np.int32), widths.astype(np.int32), ell_columns.astype(np.int32),
+            ell_source.astype(np.int32))
