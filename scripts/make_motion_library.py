@@ -1,14 +1,14 @@
 """Regenerate the bundled motion library (motions/) from scratch, deterministically.
 
-    python scripts/make_motion_library.py [--mocap ../shared/mocap/cmu] [--out motions]
+    python scripts/make_motion_library.py [--mocap ../shared/mocap/cmu] [--out motions] [--jobs 2]
                                           [--contact-sheet docs/img/motion_library.png]
 
 Writes, for the bundled open body:
 - motions/NAME.npz for every procedural clip (simgen.motion.procedural, put on the floor) and for
   the three CMU clips of subject 131 (BVH at 120 fps, retargeted by simgen.motion.bvh.load_bvh,
-  low-pass filtered, resampled to 30 fps, at most 10 s, put on the floor, arms turned out of the
-  torso by simgen.motion.separate_arms), as simgen's AMASS-style
-  .npz (simgen.motion.save_motion);
+  low-pass filtered, resampled to 30 fps, at most 10 s, put on the floor), every clip with its arms
+  turned out of the torso for the presets' extreme shapes (simgen.motion.separate_arms, CLEAR_SHAPES),
+  as simgen's AMASS-style .npz (simgen.motion.save_motion);
 - motions/library.json: {"version": 1, "clips": {NAME: {"split", "description", "source",
   "attribution"}}} with the fixed train/test split below;
 - motions/ATTRIBUTION.md: where the clips come from and CMU's terms of use.
@@ -117,13 +117,35 @@ CMU_SIGMA_BODY_S = 1.0 / 30.0
 _DISTAL = (10, 11, 20, 21, 22, 23)
 
 
-#: Body shapes whose arms the CMU clips keep out of the torso (simgen.motion.clearance): the mean body
-#: and beta 1 = +2, the widest waist of the thesis-tshirt shapes (docs/body_betas.json).
-CMU_CLEAR_SHAPES = np.array([[0.0, 0.0], [0.0, 2.0]])
+def _extreme_shapes(components: int = 4, value: float = 2.0) -> np.ndarray:
+    """The mean body and each of the first ``components`` shape components at -value and +value."""
+    shapes = [np.zeros(components)]
+    for c in range(components):
+        for sign in (-1.0, 1.0):
+            b = np.zeros(components)
+            b[c] = sign * value
+            shapes.append(b)
+    return np.array(shapes)
+
+
+#: Body shapes whose arms every clip keeps out of the torso and legs (simgen.motion.clearance): the
+#: mean body and the extremes of the thesis presets' shapes (betas 0-3 at -2 and +2). Their torsos
+#: and arms differ by centimetres (beta 2 = +2 sinks a hanging arm 34 mm into the hip, beta 0 = -2
+#: 13 mm, the mean body none), so a clip cleared for the mean body alone pinches the cloth of the
+#: wide shapes between arm and torso; the intermediate shapes (+-1) lie between these.
+CLEAR_SHAPES = _extreme_shapes()
+
+
+def clear_arms(clip):
+    """separate_arms for CLEAR_SHAPES (a module-level function so a process pool can run it)."""
+    from simgen.body import load
+    from simgen.motion import separate_arms
+
+    return separate_arms(clip, load("open"), betas=CLEAR_SHAPES)
 
 
 def build_cmu(body, mocap_dir: Path) -> list:
-    from simgen.motion import BvhMappingWarning, MotionClip, load_bvh, put_on_floor, resample, separate_arms, trim
+    from simgen.motion import BvhMappingWarning, MotionClip, load_bvh, put_on_floor, resample, trim
     from simgen.motion.bvh import parse_bvh
 
     clips = []
@@ -142,12 +164,6 @@ def build_cmu(body, mocap_dir: Path) -> list:
         if window is not None and clip.duration > window[1] - window[0]:
             clip = trim(clip, *window)
         clip = put_on_floor(clip, body)
-        # The capture's arms touch the actor's sides; on this body they sink into the torso (and the
-        # hands into the hips): turn them out, for the mean body and the widest waist of the presets.
-        clip = separate_arms(clip, body, betas=CMU_CLEAR_SHAPES,
-                             progress=lambda k, n, name=name: print(f"\rseparate_arms {name}: {k}/{n}", end="",
-                                                                     file=sys.stderr))
-        print(file=sys.stderr)
         clip.meta.update(source="CMU mocap", attribution=CMU_ACKNOWLEDGEMENT, description=description)
         clips.append(clip)
     return clips
@@ -205,6 +221,7 @@ def main(argv=None) -> int:
     parser.add_argument("--mocap", type=Path, default=REPO.parent / "shared" / "mocap" / "cmu",
                         help="folder with the CMU BVH files 131_01..03.bvh (default: ../shared/mocap/cmu)")
     parser.add_argument("--out", type=Path, default=REPO / "motions", help="library folder (default: motions/)")
+    parser.add_argument("--jobs", type=int, default=2, help="processes that turn the arms out (default 2)")
     parser.add_argument("--contact-sheet", type=Path, default=None, help="also render a PNG contact sheet here")
     args = parser.parse_args(argv)
 
@@ -217,6 +234,24 @@ def main(argv=None) -> int:
         raise SystemExit(f"CMU BVH files {absent} are not in {args.mocap} (pass --mocap FOLDER)")
     body = load("open")
     clips = build_procedural(body) + build_cmu(body, args.mocap)
+    # Arms out of the torso (the slow part: every frame posed for every shape): one clip per task,
+    # longest first. Captured arms touch the actor's sides and procedural arms hang close to them;
+    # on the wide shapes both sink into the torso, where no garment can lie.
+    order = sorted(range(len(clips)), key=lambda i: -clips[i].num_frames)
+    cleared = [None] * len(clips)
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+
+    with ProcessPoolExecutor(max(int(args.jobs), 1), mp_context=multiprocessing.get_context("spawn")) as pool:
+        futures = {pool.submit(clear_arms, clips[i]): i for i in order}
+        for n, future in enumerate(as_completed(futures), 1):
+            i = futures[future]
+            cleared[i] = future.result()
+            arms = cleared[i].meta["history"][-1]["arms"]
+            print(f"separate_arms {n}/{len(clips)} {clips[i].name}: " + ", ".join(
+                f"{side} {a['frames_turned']} frames up to {a['max_turn_deg']:.0f} deg" for side, a in arms.items()),
+                file=sys.stderr, flush=True)
+    clips = cleared
     names = [c.name for c in clips]
     missing = [n for n in TEST_CLIPS if n not in names]
     if missing:

@@ -98,3 +98,19 @@ def test_bad_parameters_are_one_clear_error(body, kwargs, field):
 def test_penetration_of_several_shapes_at_once_is_one_clear_error(body):
     with pytest.raises(InputError, match="arm_torso_penetration takes one body shape"):
         arm_torso_penetration(_arms_down_clip([90.0]), body, betas=np.zeros((2, 10)))
+
+
+def test_several_shapes_are_all_cleared(body):
+    # beta 2 = +2 widens the hips: arms that hang clear of the mean body sink into it. Turned for
+    # both shapes, the arms clear both, and by more than the mean body alone needs.
+    wide = np.zeros(body.num_betas)
+    wide[2] = 2.0
+    clip = _arms_down_clip([75.0, 85.0, 95.0])
+    assert arm_torso_penetration(clip, body, betas=wide)["left"].max() > arm_torso_penetration(clip, body)["left"].max()
+    both = separate_arms(clip, body, betas=np.stack([np.zeros(body.num_betas), wide]), smooth_s=0.0)
+    mean_only = separate_arms(clip, body, smooth_s=0.0)
+    for shape in (np.zeros(body.num_betas), wide):
+        after = arm_torso_penetration(both, body, betas=shape)
+        assert after["left"].max() == 0.0 and after["right"].max() == 0.0
+    turn = [fixed.meta["history"][-1]["arms"]["left"]["max_turn_deg"] for fixed in (mean_only, both)]
+    assert turn[1] > turn[0]

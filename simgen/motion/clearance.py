@@ -21,7 +21,9 @@ short where neighbouring frames needed other axes. Points near the shoulder (the
 fold, which no pose removes) are not tested: only arm vertices farther from the shoulder joint
 than ``reach_from_shoulder`` times the upper arm's length.
 
-Several body shapes can be given: each frame then takes the turn that clears the widest of them.
+Several body shapes can be given: each frame's turn is built up shape by shape (each shape still
+inside after the turns of those before it adds its own), so the arm clears all of them; the total
+turn is capped at ``max_angle_deg`` too.
 """
 
 from __future__ import annotations
@@ -168,12 +170,23 @@ def _turn_needed(obstacle: _Obstacle, points: np.ndarray, shoulder: np.ndarray, 
 
 def _search(setups, clip: MotionClip, clearance: float, step: float, max_angle: float, progress, offset: int,
             total: int) -> dict[str, np.ndarray]:
-    """Per arm, the turn of each frame as a rotation vector in the collar's frame, (T, 3)."""
+    """Per arm, the turn of each frame as a rotation vector in the collar's frame, (T, 3).
+
+    The shapes are taken one after the other, each on the pose already turned for the ones before:
+    a shape whose arms are clear by then costs one query; only a shape still inside searches, and
+    its turn is added to the frame's. (Taking each shape's own turn from the unturned pose and the
+    largest of them searched every shape on every frame, nine times the work for the presets.)
+    """
     T = clip.num_frames
     corrections = {side: np.zeros((T, 3)) for side in _ARMS}
     for t in range(T):
         for setup in setups:
-            out, obstacle, points = _frame_state(setup, clip.poses[t], clip.trans[t], clearance)
+            pose = clip.poses[t].copy()
+            for side, (shoulder, _, _, _) in _ARMS.items():
+                c = corrections[side][t]
+                if np.any(c):
+                    pose[shoulder] = matrix_to_axis_angle(axis_angle_to_matrix(c) @ axis_angle_to_matrix(pose[shoulder]))
+            out, obstacle, points = _frame_state(setup, pose, clip.trans[t], clearance)
             root = out.transforms[0, 0, :3, :3]
             for side, (shoulder, collar, elbow, _) in _ARMS.items():
                 sign = 1.0 if side == "left" else -1.0
@@ -181,8 +194,15 @@ def _search(setups, clip: MotionClip, clearance: float, step: float, max_angle: 
                 body_axes = np.stack([sign * root[:, 0], root[:, 2], -root[:, 2]])
                 axis, angle = _turn_needed(obstacle, points[side], out.joints[0, shoulder], out.joints[0, elbow],
                                            body_axes, step, max_angle)
-                if axis is not None and angle > np.linalg.norm(corrections[side][t]):
-                    corrections[side][t] = out.transforms[0, collar, :3, :3].T @ (axis * angle)
+                if axis is None:
+                    continue
+                # A world turn W about the shoulder is G_collar^T W G_collar in the collar's frame,
+                # applied before the turn found so far.
+                local = out.transforms[0, collar, :3, :3].T @ (axis * angle)
+                turned = matrix_to_axis_angle(axis_angle_to_matrix(local)
+                                              @ axis_angle_to_matrix(corrections[side][t]))
+                norm = np.linalg.norm(turned)
+                corrections[side][t] = turned if norm <= max_angle else turned * (max_angle / norm)
         if progress is not None:
             progress(offset + t + 1, total)
     return corrections
