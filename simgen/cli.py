@@ -566,7 +566,7 @@ def dataset_generate(
 @dataset_app.command("check")
 def dataset_check(
     path: str = typer.Argument(..., help="The dataset store (folder or fsspec URL)."),
-    stride: int = typer.Option(1, "--stride", help="Check body penetration and strain on every N-th frame."),
+    stride: int = typer.Option(1, "--stride", help="Check body penetration on every N-th frame (strain and NaN: every frame)."),
     max_depth: float = typer.Option(1.0e-3, "--max-depth", help="Deepest allowed vertex inside the body [m]."),
     max_strain: float = typer.Option(1.0, "--max-strain", help="Largest allowed principal stretch - 1."),
     require_complete: bool = typer.Option(False, "--require-complete", help="Planned but missing sequences fail."),

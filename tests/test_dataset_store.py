@@ -189,11 +189,11 @@ def test_check_passes_then_finds_damage(tiny, tmp_path):
     assert rep.sequences == 4 and rep.frames == 20 and rep.frames_checked_body == 20
     assert 0 < rep.max_strain < 1.0
     # Damage copies of the store, one way each; every one must be found.
-    def damaged(name, how):
+    def damaged(name, how, stride=1):
         d = tmp_path / name
         shutil.copytree(tiny["out"], d)
         how(d)
-        r = check_dataset(d)
+        r = check_dataset(d, stride=stride)
         assert not r.passed, name
         return r
 
@@ -256,6 +256,24 @@ def test_check_passes_then_finds_damage(tiny, tmp_path):
     r = damaged("inside", push_inside)
     assert [p["check"] for p in r.problems if p["node"] == "sequences/walk_fast__zero"] == ["inside-body", "strain"]
     assert r.max_depth > 5e-3
+
+    def stretch_one_frame(d):
+        # One vertex of frame 1 pulled 10 cm out: a tangle on a frame the body stride skips.
+        loc = Location(d)
+        rel = "sequences/walk_fast__zero"
+        arrays, attrs = node_arrays(loc, rel), loc.node_attrs(rel)
+        arrays["garment_vertices"] = arrays["garment_vertices"].copy()
+        arrays["garment_vertices"][1, 0, 0] += 0.1
+        shutil.rmtree(d / rel)
+        commit = loc.write_node(rel, arrays, attrs)
+        m = json.loads((d / "manifest.json").read_text())
+        m["sequences"]["walk_fast__zero"]["checksum"] = commit["checksum"]
+        (d / "manifest.json").write_text(json.dumps(m))
+
+    r = damaged("stretched", stretch_one_frame, stride=1000)
+    strain = [p for p in r.problems if p["check"] == "strain"]
+    assert [p["node"] for p in r.problems] == ["sequences/walk_fast__zero"] and len(strain) == 1
+    assert "at frame 1 " in strain[0]["message"] and "1 of 5 frames" in strain[0]["message"]
 
 
 def test_write_failure_is_one_error_and_resumable(tmp_path, monkeypatch, capsys):

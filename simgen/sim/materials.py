@@ -155,14 +155,18 @@ MATERIALS: dict[str, Material] = {
     "interlock": Material(
         name="interlock",
         area_density=0.187,
-        youngs_modulus=3.0e4,
+        youngs_modulus=3.0e5,
         poisson_ratio=0.3,
         thickness=5.0e-4,
         bending_stiffness=2.0e-5,
-        source=(_ARCSIM + ": area density 0.187 kg/m^2 of the measured gray-interlock. Stiffness is an "
-                "assumption (ARCSim's nonlinear measured tables are not an isotropic StVK fit): a knit about "
-                "half as stiff as SNUG cotton in stretch (E h = 15 N/m vs 33 N/m) and in bending "
-                "(2.0e-5 vs 3.96e-5 N m); thickness 0.5 mm (bulk density ~370 kg/m^3)"),
+        source=(_ARCSIM + ": area density 0.187 kg/m^2 of the measured gray-interlock. Stretch is an isotropic "
+                "StVK fit to ARCSim's gray-interlock stretching table, which is nonlinear and anisotropic: "
+                "(lambda + 2 mu) h of ~33 and ~69 N/m along its two fabric directions at rest, stiffening to ~90-280 "
+                "and ~410-830 N/m at 17% strain; E h = 150 N/m ((lambda + 2 mu) h = 165 N/m, ~4.5x SNUG cotton) is "
+                "their middle at ~8% strain, where garments on a moving body work. A fit at rest (~15 N/m) "
+                "lets the knit hang 6% on average and 28% in places under its own weight, and arms swung "
+                "at the speed of the CMU hop stretch it to 3x. Bending 2.0e-5 N m (half SNUG cotton) and "
+                "thickness 0.5 mm (bulk density ~370 kg/m^3) are assumptions"),
     ),
     "denim": Material(
         name="denim",
