@@ -181,7 +181,7 @@ def test_reader_api(tiny):
         ds.sequence_ids("validation")
 
 
-def test_check_passes_then_finds_damage(tiny, tmp_path):
+def test_check_passes_then_finds_damage(tiny, tmp_path, monkeypatch):
     import shutil
 
     rep = check_dataset(tiny["out"])
@@ -274,6 +274,19 @@ def test_check_passes_then_finds_damage(tiny, tmp_path):
     strain = [p for p in r.problems if p["check"] == "strain"]
     assert [p["node"] for p in r.problems] == ["sequences/walk_fast__zero"] and len(strain) == 1
     assert "at frame 1 " in strain[0]["message"] and "1 of 5 frames" in strain[0]["message"]
+    # The same stretch where the cloth touches a body self-intersection is counted apart, not failed.
+    import simgen.dataset.quality as quality
+
+    real_penetration = quality.body_penetration
+
+    def all_at_self_intersections(points, *args, **kwargs):
+        depth, _ = real_penetration(points, *args, **kwargs)
+        return depth, np.ones(len(depth), dtype=bool)
+
+    monkeypatch.setattr(quality, "body_penetration", all_at_self_intersections)
+    r = check_dataset(tmp_path / "stretched", stride=1000)
+    assert r.passed and r.pinched_strain_frames == 1 and r.max_strain > 1.0 > r.max_strain_regular
+    assert [w["check"] for w in r.warnings if w["node"] == "sequences"] == ["strain-pinched"]
 
 
 def test_write_failure_is_one_error_and_resumable(tmp_path, monkeypatch, capsys):
