@@ -395,6 +395,9 @@ def simulate(
     device: Optional[str] = typer.Option(None, "--device", help="Warp device: cpu or cuda (default: Warp's)."),
     frames: Optional[int] = typer.Option(None, "--frames", help="Simulate only the first N frames of the clip."),
     substeps: int = typer.Option(10, "--substeps", help="Solver steps per frame (10 at 30 fps: 3.33 ms)."),
+    newton_iterations: int = typer.Option(
+        1, "--newton-iterations", help="Newton iterations per substep (1: ARCSim's; 2 keeps fast limbs from "
+                                       "flicking single cloth vertices for a frame; each one more assembly and solve)."),
     self_contact: bool = typer.Option(False, "--self-contact/--no-self-contact",
                                       help="Cloth-cloth vertex-triangle repulsion (2 mm thickness)."),
     out: Path = typer.Option(Path("simgen-sim"), "--out", help="Output folder."),
@@ -405,12 +408,13 @@ def simulate(
     Writes NAME_CLIP.npz (positions, per-frame stats), NAME_CLIP.usdc (body and garment) and an MP4.
     """
     _simulate_and_write(garment=garment, motion=motion, body=body, betas=betas, material=material, device=device,
-                        frames=frames, substeps=substeps, out=out, video=video, self_contact=self_contact)
+                        frames=frames, substeps=substeps, out=out, video=video, self_contact=self_contact,
+                        newton_iterations=newton_iterations)
 
 
 def _simulate_and_write(*, garment: str, motion: str, body: str, betas: Optional[str], material: Optional[str],
                         device: Optional[str], frames: Optional[int], substeps: int, out: Path, video: bool,
-                        self_contact: bool = False) -> None:
+                        self_contact: bool = False, newton_iterations: int = 1) -> None:
     import numpy as np
 
     from simgen.garment import load_garment
@@ -421,6 +425,8 @@ def _simulate_and_write(*, garment: str, motion: str, body: str, betas: Optional
     beta_values = parse_betas(betas)
     if frames is not None and frames < 1:
         raise InputError(f"--frames must be at least 1, got {frames}")
+    if newton_iterations < 1:
+        raise InputError(f"--newton-iterations must be at least 1, got {newton_iterations}")
     if material is not None:
         get_material(material)
     if device is not None and device not in ("cpu", "cuda") and not device.startswith("cuda:"):
@@ -429,7 +435,7 @@ def _simulate_and_write(*, garment: str, motion: str, body: str, betas: Optional
     model.check_betas(beta_values or [0.0])
     cloth = load_garment(garment, body=model)
     clip = load_motion(motion)
-    solver = SimulationConfig().solver
+    solver = dataclasses.replace(SimulationConfig().solver, newton_iterations=newton_iterations)
     if self_contact:
         from simgen.sim.energies import SelfContactParams
 

@@ -257,13 +257,21 @@ def test_simulate_writes_npz_and_valid_usd(capsys, tmp_path):
 
     out_dir = tmp_path / "sim"
     code, out, err = run_main(["simulate", "--garment", "tshirt_1k", "--motion", "walk", "--frames", "2",
-                               "--substeps", "2", "--device", "cpu", "--no-video", "--out", str(out_dir)], capsys)
+                               "--substeps", "2", "--newton-iterations", "2", "--device", "cpu", "--no-video",
+                               "--out", str(out_dir)], capsys)
     assert code == 0, err
     data = np.load(out_dir / "tshirt_1k_walk.npz")
     assert data["positions"].shape[0] == 2 and np.all(np.isfinite(data["positions"]))
     usd = out_dir / "tshirt_1k_walk.usdc"
     assert validate_usd(usd) == []
     assert set(read_usd_meshes(usd)) == {"body", "tshirt_1k"}
+
+
+def test_simulate_bad_newton_iterations_exit_2(capsys, tmp_path):
+    code, _, err = run_main(["simulate", "--garment", "tshirt_1k", "--motion", "walk", "--newton-iterations", "0",
+                             "--out", str(tmp_path / "s")], capsys)
+    assert code == 2 and "--newton-iterations" in err
+    assert not (tmp_path / "s").exists()
 
 
 def test_simulate_bad_material_exit_2(capsys, tmp_path):
