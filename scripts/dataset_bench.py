@@ -114,6 +114,11 @@ def main(argv=None) -> int:
             "wall_s": r.wall,
             "run_wall_s": wall,
             "cloth_frames_per_s": rate,
+            # Where the wall time went (summed over batches): the solver's stepping, the rest of the
+            # simulate_batch calls (posing, per-frame statistics, host copies), writing the nodes, and
+            # what is left (planning, fits' bookkeeping, waiting).
+            "time_split_s": {"solver_steps": r.step_wall, "simulate_other": r.simulate_wall - r.step_wall,
+                             "write": r.write_wall, "other": r.wall - r.simulate_wall - r.write_wall},
             "output_frames_stored": out_frames,
             "stopped": r.stopped,
             "thesis_tshirt_plan": thesis_plan,

@@ -193,7 +193,11 @@ def _rest_frames(result) -> np.ndarray:
 
 
 def run_batch(task: BatchTask, progress=None) -> dict:
-    """Simulate one batch and write its nodes; returns {outcomes, error, wall, cloth_frames}.
+    """Simulate one batch and write its nodes; returns {outcomes, error, wall, cloth_frames, step_s, write_s}.
+
+    wall [s]: the batch's simulation (``simulate_jobs``); step_s [s]: the solver's stepping within it
+    (the per-frame step times of the batch's longest job, protocol included; the rest of ``wall`` is
+    posing, statistics and host copies); write_s [s]: ground truth, statistics and store writes.
 
     Jobs whose node is already committed (an earlier attempt of this task) are not simulated again.
     Each outcome: ok, kind, id, attempt, checksum (ok) or message (failed), frames, motion,
@@ -232,6 +236,9 @@ def run_batch(task: BatchTask, progress=None) -> dict:
     t0 = time.perf_counter()
     results = simulate_jobs(garment, body, todo, config, progress=progress) if todo else []
     wall = time.perf_counter() - t0
+    t_write = time.perf_counter()
+    step_s = max((float(np.sum(r.stats["step_time"])) + float(np.sum(r.protocol_stats.get("step_time", 0.0)))
+                  for r in results if not isinstance(r, SimFailure) and "step_time" in r.stats), default=0.0)
     cloth_frames = job_cloth_frames(spec, todo)
     smoothing = spec.smoothing_params()
     faces = np.asarray(garment.faces)
@@ -300,7 +307,8 @@ def run_batch(task: BatchTask, progress=None) -> dict:
             error = str(exc)
             break
         outcomes.append({**base(job), "ok": True, "checksum": commit["checksum"]})
-    return {"outcomes": outcomes, "error": error, "wall": wall, "cloth_frames": cloth_frames}
+    return {"outcomes": outcomes, "error": error, "wall": wall, "cloth_frames": cloth_frames, "step_s": step_s,
+            "write_s": time.perf_counter() - t_write}
 
 
 def _injected_fault() -> None:

@@ -52,6 +52,9 @@ class StoreReport:
     pending: int = 0
     cloth_frames: int = 0
     wall: float = 0.0
+    simulate_wall: float = 0.0  # [s] summed over batches: simulate_batch calls
+    step_wall: float = 0.0      # [s] of which the solver's stepping (the rest: posing, statistics, copies)
+    write_wall: float = 0.0     # [s] ground truth, statistics and store writes
     stopped: str | None = None
     reconcile: dict = field(default_factory=dict)
 
@@ -287,6 +290,9 @@ def _drive(spec, store, garment, body, pending, executor, report, progress, time
         task, result = executor.next_result()
         done[0] += job_cloth_frames(spec, task.jobs)
         report.cloth_frames += result["cloth_frames"]
+        report.simulate_wall += result["wall"]
+        report.step_wall += result.get("step_s", 0.0)
+        report.write_wall += result.get("write_s", 0.0)
         report.wall = time.perf_counter() - t0
         rate[0] = report.cloth_frames_per_second
         retry, waiting = [], []
