@@ -22,8 +22,10 @@ from __future__ import annotations
 
 import argparse
 import json
+import multiprocessing
 import sys
 import warnings
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 
 import numpy as np
@@ -239,9 +241,6 @@ def main(argv=None) -> int:
     # on the wide shapes both sink into the torso, where no garment can lie.
     order = sorted(range(len(clips)), key=lambda i: -clips[i].num_frames)
     cleared = [None] * len(clips)
-    import multiprocessing
-    from concurrent.futures import ProcessPoolExecutor, as_completed
-
     with ProcessPoolExecutor(max(int(args.jobs), 1), mp_context=multiprocessing.get_context("spawn")) as pool:
         futures = {pool.submit(clear_arms, clips[i]): i for i in order}
         for n, future in enumerate(as_completed(futures), 1):

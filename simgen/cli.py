@@ -397,7 +397,8 @@ def simulate(
     substeps: int = typer.Option(10, "--substeps", help="Solver steps per frame (10 at 30 fps: 3.33 ms)."),
     newton_iterations: int = typer.Option(
         1, "--newton-iterations", help="Newton iterations per substep (1: ARCSim's; 2 keeps fast limbs from "
-                                       "flicking single cloth vertices for a frame; each one more assembly and solve)."),
+                                       "flicking single cloth vertices for a frame; each is one more assembly "
+                                       "and solve)."),
     self_contact: bool = typer.Option(False, "--self-contact/--no-self-contact",
                                       help="Cloth-cloth vertex-triangle repulsion (2 mm thickness)."),
     out: Path = typer.Option(Path("simgen-sim"), "--out", help="Output folder."),
@@ -572,7 +573,8 @@ def dataset_generate(
 @dataset_app.command("check")
 def dataset_check(
     path: str = typer.Argument(..., help="The dataset store (folder or fsspec URL)."),
-    stride: int = typer.Option(1, "--stride", help="Check body penetration on every N-th frame (strain and NaN: every frame)."),
+    stride: int = typer.Option(1, "--stride",
+                               help="Check body penetration on every N-th frame (strain and NaN: every frame)."),
     max_depth: float = typer.Option(1.0e-3, "--max-depth", help="Deepest allowed vertex inside the body [m]."),
     max_strain: float = typer.Option(1.0, "--max-strain", help="Largest allowed principal stretch - 1."),
     require_complete: bool = typer.Option(False, "--require-complete", help="Planned but missing sequences fail."),

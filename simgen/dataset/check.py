@@ -42,24 +42,25 @@ _STRAIN_CHUNK = 32
 DEFAULT_MAX_STRAIN = 1.0       # [-] largest principal stretch - 1
 
 
-def _split_pinched_strain(over: dict, x, poses, trans, betas, bm, faces, device, home_parts, part_masks,
-                          pinch_distance, body_penetration) -> tuple[dict, dict]:
-    """Split the frames with strain outliers ({frame: {triangle: strain}}) into regular ones and those
-    whose every outlier triangle has a vertex at a body self-intersection (the body re-posed here)."""
-    regular, pinched = {}, {}
+def _split_pinched_strain(over: dict, x, poses, trans, betas, bm, faces, **penetration_kwargs) -> tuple[dict, dict]:
+    """Split the frames with strain outliers ({frame: {triangle: strain}}) into free ones (their
+    outliers away from body self-intersections only) and pinched ones (every outlier triangle has a
+    vertex at a self-intersection, by :func:`body_penetration` on the body re-posed here)."""
+    from simgen.dataset.quality import body_penetration
+
+    free, pinched = {}, {}
     frames = sorted(over)
     for i in range(0, len(frames), _POSE_CHUNK):
         sel = frames[i:i + _POSE_CHUNK]
         posed = bm.forward(betas[sel], poses[sel], trans[sel]).vertices
         for j, k in enumerate(sel):
-            _, self_hit = body_penetration(x[k], posed[j], bm.faces, device=device, home_parts=home_parts,
-                                           part_masks=part_masks, pinch_distance=pinch_distance)
-            free = {f: v for f, v in over[k].items() if not np.any(self_hit[faces[f]])}
-            if free:
-                regular[k] = free
+            _, self_hit = body_penetration(x[k], posed[j], bm.faces, **penetration_kwargs)
+            away = {f: v for f, v in over[k].items() if not np.any(self_hit[faces[f]])}
+            if away:
+                free[k] = away
             else:
                 pinched[k] = over[k]
-    return regular, pinched
+    return free, pinched
 
 
 @dataclass
@@ -115,8 +116,8 @@ def check_dataset(path, *, body=None, stride: int = 1, max_depth: float = DEFAUL
     """Check a store (see the module doc). Returns a :class:`CheckReport`.
 
     stride: check the body penetration on every stride-th frame (NaN, strain, missing frames and
-    checksums always cover every frame: they need no body); body: BodyModel or source to re-pose with (default: the
-    store's, verified by hash); progress(done, total) per sequence; device: Warp device of the
+    checksums always cover every frame: they need no body); body: BodyModel or source to re-pose
+    with (default: the store's, verified by hash); progress(done, total) per sequence; device: Warp device of the
     surface queries ("auto": CUDA when present, else the CPU).
     """
     import zarr
@@ -285,8 +286,9 @@ def check_dataset(path, *, body=None, stride: int = 1, max_depth: float = DEFAUL
                 for t, f in zip(*np.nonzero(s > max_strain)):
                     over.setdefault(start + int(t), {})[int(f)] = float(s[t, f])
             rep.max_strain = max(rep.max_strain, smax)
-            free, pinched = _split_pinched_strain(over, x, poses, trans, betas, bm, faces, device, home_parts,
-                                                     part_masks, pinch_distance, body_penetration)
+            free, pinched = _split_pinched_strain(over, x, poses, trans, betas, bm, faces, device=device,
+                                                  home_parts=home_parts, part_masks=part_masks,
+                                                  pinch_distance=pinch_distance)
             rep.pinched_strain_frames += len(pinched)
             rep.max_strain_regular = max(rep.max_strain_regular, below,
                                          *(v for fr in free.values() for v in fr.values()))

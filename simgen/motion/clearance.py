@@ -185,7 +185,8 @@ def _search(setups, clip: MotionClip, clearance: float, step: float, max_angle: 
             for side, (shoulder, _, _, _) in _ARMS.items():
                 c = corrections[side][t]
                 if np.any(c):
-                    pose[shoulder] = matrix_to_axis_angle(axis_angle_to_matrix(c) @ axis_angle_to_matrix(pose[shoulder]))
+                    rotation = axis_angle_to_matrix(c) @ axis_angle_to_matrix(pose[shoulder])
+                    pose[shoulder] = matrix_to_axis_angle(rotation)
             out, obstacle, points = _frame_state(setup, pose, clip.trans[t], clearance)
             root = out.transforms[0, 0, :3, :3]
             for side, (shoulder, collar, elbow, _) in _ARMS.items():
