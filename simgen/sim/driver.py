@@ -209,6 +209,28 @@ _body_contact = contact_funcs(wp.float32).body_contact
 
 
 @wp.kernel(enable_backward=False)
+def _hold_instances(pinned_before: wp.array(dtype=wp.int32), vertex_instance: wp.array(dtype=wp.int32),
+                    held: wp.array(dtype=wp.int32), pinned: wp.array(dtype=wp.int32), v: wp.array(dtype=wp.vec3)):
+    # Held instances are pinned with zero velocity (kinematic and still); the others keep their pins.
+    i = wp.tid()
+    if held[vertex_instance[i]] != 0:
+        pinned[i] = 1
+        v[i] = wp.vec3(0.0)
+    else:
+        pinned[i] = pinned_before[i]
+
+
+@wp.kernel(enable_backward=False)
+def _select_instances(src_x: wp.array(dtype=wp.vec3), src_v: wp.array(dtype=wp.vec3),
+                      vertex_instance: wp.array(dtype=wp.int32), chosen: wp.array(dtype=wp.int32),
+                      x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3)):
+    i = wp.tid()
+    if chosen[vertex_instance[i]] != 0:
+        x[i] = src_x[i]
+        v[i] = src_v[i]
+
+
+@wp.kernel(enable_backward=False)
 def _classify_inside(
     x: wp.array(dtype=wp.vec3),
     vertex_instance: wp.array(dtype=wp.int32),
@@ -416,10 +438,14 @@ def simulate_batch(garment, body, jobs, config: SimulationConfig | None = None, 
     rate (config.fps, or the clips' own when it is None).
 
     On CUDA each frame's substeps (body posing, refits, solver) replay as one captured CUDA graph
-    (``config.cuda_graph``); the guard's checks run inside it and are read once per frame: if any
-    instance failed, the frame is restored and redone uncaptured with the guard's half-step retries.
-    An instance that still diverges is frozen (pinned where it is, its body switched off) and its
-    slot returns a :class:`SimulationFailure`; the others go on and the frame is redone for them.
+    (``config.cuda_graph``); the CPU runs the same sequence uncaptured. The solver's guard runs
+    inside and is read once per frame: the instances that failed it are redone from the frame's
+    start with every substep split into 2, then 4, ... solver steps (up to the solver's
+    ``max_retries`` levels, each level its own captured graph) while the others are held where
+    they got, so no instance's result depends on its batch mates' failures and a retry costs one
+    finer frame, not an uncaptured one. An instance still not finite after the last level is
+    frozen (back at the frame start, pinned, its body switched off) and its slot returns a
+    :class:`SimulationFailure`; the others go on.
 
     progress: optional callable(done, total, phase) after each batch frame (protocol included).
     Returns one :class:`SimulationResult` or :class:`SimulationFailure` per job, in order.
@@ -542,29 +568,82 @@ def simulate_batch(garment, body, jobs, config: SimulationConfig | None = None, 
     use_graph = bool(cfg.cuda_graph) and device.is_cuda
     graphs: dict = {}
     frame_backup = model.state()
+    accepted = model.state()
     body_backup = wp.clone(collider.points)
+    held = wp.zeros(N, dtype=wp.int32, device=device)
+    max_level = cfg.solver.max_retries if cfg.solver.guard else 0
 
-    def run_substeps(reshape: bool, deferred: bool) -> None:
-        if deferred:
-            solver.clear_deferred_guard()
+    def run_substeps(reshape: bool, level: int) -> None:
+        solver.clear_deferred_guard()
+        if level > 0:
+            # A retry starts from the restored frame start: friction's contacts are taken there
+            # (at capture this puts their update into the retry's graph).
+            solver.reset_contacts()
         for s in range(S):
             if reshape:
                 wbody.set_shape(betas_rows[s])
             wbody.pose_from_quats(quat_rows[s], trans_rows[s])
             collider.update(dt=h)
-            solver.step(state, state, collider, h, deferred_guard=deferred)
+            solver.step(state, state, collider, h, deferred_guard=True,
+                        substeps=cfg.solver.substeps * 2 ** level)
 
-    def restore_frame_start() -> None:
+    def attempt(reshape: bool, level: int, eager: bool) -> np.ndarray:
+        """Run the frame's substeps (each split into 2^level solver steps); the guard's bits per instance."""
+        if eager:
+            run_substeps(reshape, level)
+        else:
+            key = (reshape, level)
+            if key not in graphs:
+                before = solver.host_counts()
+                with wp.ScopedCapture(device=device, force_module_load=False) as capture:
+                    run_substeps(reshape, level)
+                after = solver.host_counts()
+                graphs[key] = (capture.graph, {c: after[c] - before[c] for c in after})
+                solver.add_host_counts({c: -v for c, v in graphs[key][1].items()})
+            graph, delta = graphs[key]
+            wp.capture_launch(graph)
+            solver.add_host_counts(delta)
+        return solver.deferred_bad.numpy()
+
+    def retry(reshape: bool, level: int, eager: bool, failing: list) -> np.ndarray:
+        """Redo the frame from its start for ``failing`` only, at 2^level solver steps per substep.
+
+        The other instances are held: restored afterwards to the state they reached, and in between
+        pinned at the frame start with zero velocity and no body, so they neither move nor change
+        the retried ones, and no instance's result depends on its batch mates' failures.
+        """
+        hold = np.ones(N, dtype=np.int32)
+        hold[failing] = 0
+        accepted.assign(state)
         state.assign(frame_backup)
         wp.copy(collider.points, body_backup)
-        solver.reset_contacts()
+        pinned = wp.clone(model.vertex_pinned)
+        ids = collider.mesh_ids.numpy().copy()  # .numpy() is a view of the array on the CPU
+        collider.mesh_ids.assign(np.where(hold != 0, np.uint64(0), ids))
+        held.assign(hold)
+        wp.launch(_hold_instances, dim=model.num_vertices, device=device,
+                  inputs=[pinned, model.vertex_instance, held, model.vertex_pinned, state.velocities])
+        bad = attempt(reshape, level, eager)
+        collider.mesh_ids.assign(ids)
+        wp.copy(model.vertex_pinned, pinned)
+        wp.launch(_select_instances, dim=model.num_vertices, device=device,
+                  inputs=[accepted.positions, accepted.velocities, model.vertex_instance, held,
+                          state.positions, state.velocities])
+        return bad
 
     failures: dict[int, SimulationFailure] = {}
 
     def freeze(instances, phase: str, k: int, message: str) -> None:
+        # Back to the frame start, pinned there with no body: the instance stops; its slot fails.
+        chosen = np.zeros(N, dtype=np.int32)
+        chosen[list(instances)] = 1
+        held.assign(chosen)
+        wp.launch(_select_instances, dim=model.num_vertices, device=device,
+                  inputs=[frame_backup.positions, frame_backup.velocities, model.vertex_instance, held,
+                          state.positions, state.velocities])
         pinned = model.vertex_pinned.numpy()
         ids = collider.mesh_ids.numpy()
-        vel = frame_backup.velocities.numpy()
+        vel = state.velocities.numpy()
         for i in instances:
             failures[i] = SimulationFailure(keys[i], message, phase, k)
             pinned[starts[i]:starts[i + 1]] = 1
@@ -572,42 +651,38 @@ def simulate_batch(garment, body, jobs, config: SimulationConfig | None = None, 
             ids[i] = 0
         model.vertex_pinned.assign(pinned)
         collider.mesh_ids.assign(ids)
-        frame_backup.velocities.assign(vel)
-
-    def run_frame_eager(reshape: bool, phase: str, k: int) -> None:
-        from simgen.sim.solver import SolverDivergedError
-
-        while True:
-            try:
-                run_substeps(reshape, deferred=False)
-                return
-            except SolverDivergedError as exc:
-                bad = [i for i in exc.instances if i not in failures] or [i for i in range(N) if i not in failures]
-                freeze(bad, phase, k, f"solver diverged: {exc}")
-                restore_frame_start()
-                if len(failures) == N:
-                    return
+        state.velocities.assign(vel)
 
     def run_frame(reshape: bool, phase: str, k: int, first: bool) -> None:
+        """One frame for every live instance; failing instances are redone alone at finer steps.
+
+        The guard's bits are read once per attempt. Instances that failed are redone from the frame
+        start with every substep split in two, then four, ... (``max_retries`` levels) while the
+        others are held (:func:`retry`); one still not finite after the last level is frozen and
+        fails, one that is finite but still failing the guard is kept and counted unresolved.
+        The first frame runs uncaptured (it loads every kernel and takes the first lagged contacts).
+        """
         frame_backup.assign(state)
         wp.copy(body_backup, collider.points)
-        if not use_graph or first:
-            # The first frame runs eagerly: it loads every kernel and takes the first lagged contacts.
-            run_frame_eager(reshape, phase, k)
-            return
-        if reshape not in graphs:
-            before = solver.host_counts()
-            with wp.ScopedCapture(device=device, force_module_load=False) as capture:
-                run_substeps(reshape, deferred=True)
-            after = solver.host_counts()
-            graphs[reshape] = (capture.graph, {key: after[key] - before[key] for key in after})
-            solver.add_host_counts({key: -v for key, v in graphs[reshape][1].items()})
-        graph, delta = graphs[reshape]
-        wp.capture_launch(graph)
-        solver.add_host_counts(delta)
-        if solver.deferred_bad.numpy().any():
-            restore_frame_start()
-            run_frame_eager(reshape, phase, k)
+        eager = first or not use_graph
+        bad = attempt(reshape, 0, eager)
+        failing = [i for i in range(N) if bad[i] and i not in failures]
+        level = 0
+        while failing and level < max_level:
+            level += 1
+            solver.count_retries(failing)
+            bad = retry(reshape, level, eager, failing)
+            failing = [i for i in failing if bad[i]]
+        if failing:
+            diverged = [i for i in failing if bad[i] & 1]
+            solver.count_unresolved([i for i in failing if not bad[i] & 1])
+            if diverged:
+                freeze(diverged, phase, k, f"the cloth step still produced non-finite positions after "
+                                           f"{max_level} retries at up to {2 ** max_level} solver steps per substep")
+        if level > 0:
+            # Friction's lagged contacts at the frame's end for every instance (the retry took the
+            # held instances' without their body).
+            solver.take_contacts(state, collider)
 
     out_positions = [[] for _ in range(N)]
     out_stats = [[] for _ in range(N)]

@@ -32,7 +32,9 @@ once per CG iteration). The guard (one int per substep),
 from the device. For capture, ``step(..., deferred_guard=True)`` runs the guard's checks without
 reading them: each instance's failure bits accumulate in :attr:`ImplicitSolver.deferred_bad`
 (cleared by :meth:`ImplicitSolver.clear_deferred_guard`), and the caller reads them once after a
-whole captured frame and redoes the frame uncaptured, with retries, if any instance failed.
+whole captured frame and redoes the failed instances at a finer step (``step(..., substeps=n)``;
+:func:`simgen.sim.simulate_batch` holds the others meanwhile), counting it with
+:meth:`ImplicitSolver.count_retries`.
 """
 
 
@@ -335,8 +337,9 @@ class ImplicitSolver:
     @property
     def instance_stats(self) -> dict:
         """Per-instance counters since :meth:`reset_stats` (host sync), each an (I,) array:
-        max_penetration [m] before projection, retries (failed substeps of that instance; the guard
-        redoes the whole batch, so every instance takes the half steps), unresolved."""
+        max_penetration [m] before projection, retries (failed steps of that instance: step()'s own
+        guard redoes the whole batch, so every instance takes its half steps; a caller's
+        :meth:`count_retries` counts the instances it redoes), unresolved."""
         return dict(max_penetration=self._depth_max.numpy().astype(np.float64),
                     retries=self._instance_retries.copy(), unresolved=self._instance_unresolved.copy())
 
@@ -349,6 +352,22 @@ class ImplicitSolver:
         (the Python that counts them runs only at capture)."""
         for k, v in delta.items():
             self._counts[k] += int(v)
+
+    def count_retries(self, instances) -> None:
+        """Count a caller's retry of a deferred-guard step (or frame) for these instance indices."""
+        self._counts["retries"] += 1
+        self._instance_retries[list(instances)] += 1
+
+    def count_unresolved(self, instances) -> None:
+        """Count instances a caller kept although they still failed the guard after its last retry."""
+        if len(instances):
+            self._counts["unresolved"] += 1
+            self._instance_unresolved[list(instances)] += 1
+
+    def take_contacts(self, state: ClothState, body: BodyCollider | None) -> None:
+        """Take friction's lagged contacts from ``state`` against the body where it is now, as a
+        step does at its end (e.g. after a caller restored or replaced some instances' states)."""
+        self._lag_contacts(state, body)
 
     def clear_deferred_guard(self) -> None:
         """Zero :attr:`deferred_bad` (a memset, graph-capture safe)."""
@@ -365,7 +384,7 @@ class ImplicitSolver:
         self._inside.zero_()
 
     def step(self, state_in: ClothState, state_out: ClothState, body: BodyCollider | None, dt: float, *,
-             deferred_guard: bool = False) -> None:
+             deferred_guard: bool = False, substeps: int | None = None) -> None:
         """Advance ``state_in`` by dt [s] into ``state_out`` (they may be the same object).
 
         body: the :class:`BodyCollider` (one body per instance, already :meth:`~BodyCollider.update`d
@@ -373,6 +392,8 @@ class ImplicitSolver:
         None for no body. Raises SolverDivergedError if a step stays non-finite after every retry.
         deferred_guard: run the guard's checks but only OR their bits into :attr:`deferred_bad`,
         with no host read and no retry (for CUDA graph capture; see the module doc).
+        substeps: equal substeps of this step instead of ``config.substeps`` (e.g. a caller's retry
+        of a failed step at a finer time step).
         """
         try:
             dt = float(dt)
@@ -385,7 +406,9 @@ class ImplicitSolver:
         cfg = self.config
         work = self._work
         work.assign(state_in)
-        n = cfg.substeps
+        n = cfg.substeps if substeps is None else int(substeps)
+        if n < 1:
+            raise InputError(f"substeps must be an integer >= 1, got {substeps!r}")
         for s in range(n):
             if deferred_guard:
                 self._deferred_step(work, body, dt / n, s / n, (s + 1) / n)
