@@ -399,6 +399,10 @@ def simulate(
         1, "--newton-iterations", help="Newton iterations per substep (1: ARCSim's; 2 keeps fast limbs from "
                                        "flicking single cloth vertices for a frame; each is one more assembly "
                                        "and solve)."),
+    strain_limit: Optional[float] = typer.Option(
+        None, "--strain-limit", help="Largest principal stretch - 1 any triangle may keep after a substep "
+                                     "(e.g. 0.5; default: no limit). Stops the one-frame spikes of cloth squeezed "
+                                     "between body parts."),
     self_contact: bool = typer.Option(False, "--self-contact/--no-self-contact",
                                       help="Cloth-cloth vertex-triangle repulsion (2 mm thickness)."),
     out: Path = typer.Option(Path("simgen-sim"), "--out", help="Output folder."),
@@ -410,12 +414,13 @@ def simulate(
     """
     _simulate_and_write(garment=garment, motion=motion, body=body, betas=betas, material=material, device=device,
                         frames=frames, substeps=substeps, out=out, video=video, self_contact=self_contact,
-                        newton_iterations=newton_iterations)
+                        newton_iterations=newton_iterations, strain_limit=strain_limit)
 
 
 def _simulate_and_write(*, garment: str, motion: str, body: str, betas: Optional[str], material: Optional[str],
                         device: Optional[str], frames: Optional[int], substeps: int, out: Path, video: bool,
-                        self_contact: bool = False, newton_iterations: int = 1) -> None:
+                        self_contact: bool = False, newton_iterations: int = 1,
+                        strain_limit: Optional[float] = None) -> None:
     import numpy as np
 
     from simgen.garment import load_garment
@@ -428,6 +433,8 @@ def _simulate_and_write(*, garment: str, motion: str, body: str, betas: Optional
         raise InputError(f"--frames must be at least 1, got {frames}")
     if newton_iterations < 1:
         raise InputError(f"--newton-iterations must be at least 1, got {newton_iterations}")
+    if strain_limit is not None and not strain_limit > 0:
+        raise InputError(f"--strain-limit must be a number > 0, got {strain_limit}")
     if material is not None:
         get_material(material)
     if device is not None and device not in ("cpu", "cuda") and not device.startswith("cuda:"):
@@ -436,7 +443,8 @@ def _simulate_and_write(*, garment: str, motion: str, body: str, betas: Optional
     model.check_betas(beta_values or [0.0])
     cloth = load_garment(garment, body=model)
     clip = load_motion(motion)
-    solver = dataclasses.replace(SimulationConfig().solver, newton_iterations=newton_iterations)
+    solver = dataclasses.replace(SimulationConfig().solver, newton_iterations=newton_iterations,
+                                 strain_limit=strain_limit)
     if self_contact:
         from simgen.sim.energies import SelfContactParams
 

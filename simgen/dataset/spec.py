@@ -102,6 +102,8 @@ SOLVER_FIELDS: dict[str, tuple[type, float | None, bool]] = {
     "max_speed": (float, 0.0, False),
     "divergence_ratio": (float, 0.0, False),
     "damping": (bool, None, True),
+    "strain_limit": (float, 0.0, False),
+    "strain_limit_iterations": (int, 1, True),
 }
 
 _TOP = ("name", "description", "garment", "body", "shapes", "motions", "solver", "protocol", "smoothing",

@@ -55,6 +55,7 @@ from simgen.sim.energies import (ContactFrame, ContactParams, FrictionParams, Gr
 from simgen.sim.energies._common import module_name, scalar_types
 from simgen.sim.linear import BlockJacobiPCG
 from simgen.sim.model import ClothModel, ClothState
+from simgen.sim.strain_limit import StrainLimiter, strain_limit_kernels
 
 __all__ = ["SolverConfig", "ImplicitSolver", "SolverDivergedError", "solver_kernels"]
 
@@ -87,6 +88,9 @@ class SolverConfig:
     self_contact: cloth-cloth vertex-triangle repulsion (:class:`SelfContactParams`); None (default)
       switches it off.
     damping: include the material damping potential (only matters if the material has damping).
+    strain_limit: if set, after each (sub)step no triangle stretches past 1 + strain_limit in any
+      direction (:mod:`simgen.sim.strain_limit`, ``strain_limit_iterations`` Jacobi passes, before
+      the body projection); None (default) leaves plain backward Euler.
     project: after each step push vertices found inside the body onto it (offset
       ``projection_offset`` [m] outside) and remove their inward normal velocity.
     guard: check each step for divergence and retry it as two half steps, up to ``max_retries``
@@ -107,6 +111,8 @@ class SolverConfig:
     friction: FrictionParams | None = field(default_factory=FrictionParams)
     self_contact: SelfContactParams | None = None
     damping: bool = True
+    strain_limit: float | None = None
+    strain_limit_iterations: int = 8
     project: bool = True
     projection_offset: float = 0.0
     guard: bool = True
@@ -115,7 +121,11 @@ class SolverConfig:
     divergence_ratio: float = 10.0
 
     def __post_init__(self) -> None:
-        for name in ("newton_iterations", "cg_iterations", "line_search_steps", "substeps"):
+        if self.strain_limit is not None and not (isinstance(self.strain_limit, (int, float))
+                                                  and not isinstance(self.strain_limit, bool)
+                                                  and math.isfinite(self.strain_limit) and self.strain_limit > 0):
+            raise InputError(f"solver strain_limit must be a finite number > 0 or None, got {self.strain_limit!r}")
+        for name in ("newton_iterations", "cg_iterations", "line_search_steps", "substeps", "strain_limit_iterations"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise InputError(f"solver {name} must be an integer >= 1, got {v!r}")
@@ -291,6 +301,8 @@ class ImplicitSolver:
         # The contact's body part rule, decided per vertex at each step's start and held through it.
         self.part_choice = wp.zeros(m.num_vertices, dtype=wp.int32, device=dev)
         self.self_contact = SelfContactSet(m, cfg.self_contact) if cfg.self_contact is not None else None
+        self.strain_limiter = (StrainLimiter(m, cfg.strain_limit, cfg.strain_limit_iterations)
+                               if cfg.strain_limit is not None else None)
         self._frame_valid = False
         self.no_body = wp.zeros(ni, dtype=wp.uint64, device=dev)
         # Round-off allowance on energies that include the arbitrary offset of the gravity potential.
@@ -317,6 +329,9 @@ class ImplicitSolver:
         load_kernels(self.model.scalar, device=dev)
         self.pcg.load()
         wp.load_module(module_name(__name__, self.model.scalar), device=dev)
+        if self.strain_limiter is not None:
+            strain_limit_kernels(self.model.scalar)
+            wp.load_module(module_name("simgen.sim.strain_limit", self.model.scalar), device=dev)
 
     @property
     def stats(self) -> dict:
@@ -414,6 +429,8 @@ class ImplicitSolver:
                 self._deferred_step(work, body, dt / n, s / n, (s + 1) / n)
             else:
                 self._guarded_step(work, body, dt / n, s / n, (s + 1) / n, 0)
+            if self.strain_limiter is not None:
+                self.strain_limiter.apply(work, dt / n)
             if body is not None and cfg.project:
                 self._inside.zero_()
                 self._depth.zero_()
