@@ -12,6 +12,7 @@ from simgen.errors import InputError
 from simgen.sim import ClothModel, ImplicitSolver, SolverConfig
 from simgen.sim.energies import GravityParams
 from simgen.sim.strain_limit import StrainLimiter
+from test_sim_solver import grid as solver_grid
 
 wp.config.quiet = True
 DEVICE = os.environ.get("SIMGEN_TEST_DEVICE", "cpu")
@@ -19,15 +20,8 @@ REST = np.array([[0.0, 0.0, 0.0], [0.02, 0.0, 0.0], [0.004, 0.0, 0.017]])
 
 
 def grid(n, size):
-    us = np.linspace(0.0, size, n)
-    U, V = np.meshgrid(us, us, indexing="ij")
-    verts = np.stack([U.ravel(), np.zeros(n * n), V.ravel()], axis=1)
-    faces = []
-    for i in range(n - 1):
-        for j in range(n - 1):
-            a, b, c, d = i * n + j, (i + 1) * n + j, (i + 1) * n + j + 1, i * n + j + 1
-            faces += [[a, d, c], [a, c, b]]
-    return verts, np.array(faces)
+    """An n x n vertex grid in the x-z plane, corner at the origin (test_sim_solver's)."""
+    return solver_grid(n, n, size, size, center=False)
 
 
 def stretches(x, rest, faces):
