@@ -104,6 +104,7 @@ SOLVER_FIELDS: dict[str, tuple[type, float | None, bool]] = {
     "damping": (bool, None, True),
     "strain_limit": (float, 0.0, False),
     "strain_limit_iterations": (int, 1, True),
+    "constraint_rounds": (int, 1, True),
 }
 
 _TOP = ("name", "description", "garment", "body", "shapes", "motions", "solver", "protocol", "smoothing",

@@ -93,6 +93,10 @@ class SolverConfig:
       the body projection); None (default) leaves plain backward Euler.
     project: after each step push vertices found inside the body onto it (offset
       ``projection_offset`` [m] outside) and remove their inward normal velocity.
+    constraint_rounds: how many times the strain limiter and the body projection alternate after
+      each substep (both project onto a constraint set: each undoes part of the other, and
+      alternating approaches a state that meets both; the body projection always comes last, so
+      the output is never inside the body). 1 (default) runs each once.
     guard: check each step for divergence and retry it as two half steps, up to ``max_retries``
       levels. max_speed [m/s]: a vertex faster than this marks divergence. divergence_ratio: E may
       rise at most this many times the first Newton model's predicted decrease.
@@ -115,6 +119,7 @@ class SolverConfig:
     strain_limit_iterations: int = 8
     project: bool = True
     projection_offset: float = 0.0
+    constraint_rounds: int = 1
     guard: bool = True
     max_retries: int = 4
     max_speed: float = 50.0
@@ -125,7 +130,8 @@ class SolverConfig:
                                                   and not isinstance(self.strain_limit, bool)
                                                   and math.isfinite(self.strain_limit) and self.strain_limit > 0):
             raise InputError(f"solver strain_limit must be a finite number > 0 or None, got {self.strain_limit!r}")
-        for name in ("newton_iterations", "cg_iterations", "line_search_steps", "substeps", "strain_limit_iterations"):
+        for name in ("newton_iterations", "cg_iterations", "line_search_steps", "substeps", "strain_limit_iterations",
+                     "constraint_rounds"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise InputError(f"solver {name} must be an integer >= 1, got {v!r}")
@@ -429,16 +435,21 @@ class ImplicitSolver:
                 self._deferred_step(work, body, dt / n, s / n, (s + 1) / n)
             else:
                 self._guarded_step(work, body, dt / n, s / n, (s + 1) / n, 0)
-            if self.strain_limiter is not None:
-                self.strain_limiter.apply(work, dt / n)
-            if body is not None and cfg.project:
-                self._inside.zero_()
-                self._depth.zero_()
-                body.project(self.model, work, offset=cfg.projection_offset,
-                             query_distance=cfg.contact.query_distance, pinch_distance=cfg.contact.pinch_distance,
-                             depth=self._depth, count=self._inside)
-                wp.launch(self.kernels.keep_max, dim=self.model.num_instances, device=self.model.device,
-                          inputs=[self._depth, self._depth_max])
+            projecting = body is not None and cfg.project
+            # Only the limiter and the projection alternate: a round without both is the same again.
+            rounds = cfg.constraint_rounds if projecting and self.strain_limiter is not None else 1
+            for _ in range(rounds):
+                if self.strain_limiter is not None:
+                    self.strain_limiter.apply(work, dt / n)
+                if projecting:
+                    self._inside.zero_()
+                    self._depth.zero_()
+                    body.project(self.model, work, offset=cfg.projection_offset,
+                                 query_distance=cfg.contact.query_distance,
+                                 pinch_distance=cfg.contact.pinch_distance, depth=self._depth, count=self._inside)
+                    wp.launch(self.kernels.keep_max, dim=self.model.num_instances, device=self.model.device,
+                              inputs=[self._depth, self._depth_max])
+            if projecting:
                 self._lag_contacts(work, body)
         state_out.assign(work)
         self._counts["steps"] += 1
