@@ -403,6 +403,10 @@ def simulate(
         None, "--strain-limit", help="Largest principal stretch - 1 any triangle may keep after a substep "
                                      "(e.g. 0.5; default: no limit). Stops the one-frame spikes of cloth squeezed "
                                      "between body parts."),
+    constraint_rounds: int = typer.Option(
+        1, "--constraint-rounds", help="How many times the strain limiter and the body projection alternate "
+                                       "after each substep (2 in the thesis presets: the projection re-stretches "
+                                       "what the limiter bounded)."),
     self_contact: bool = typer.Option(False, "--self-contact/--no-self-contact",
                                       help="Cloth-cloth vertex-triangle repulsion (2 mm thickness)."),
     out: Path = typer.Option(Path("simgen-sim"), "--out", help="Output folder."),
@@ -414,13 +418,14 @@ def simulate(
     """
     _simulate_and_write(garment=garment, motion=motion, body=body, betas=betas, material=material, device=device,
                         frames=frames, substeps=substeps, out=out, video=video, self_contact=self_contact,
-                        newton_iterations=newton_iterations, strain_limit=strain_limit)
+                        newton_iterations=newton_iterations, strain_limit=strain_limit,
+                        constraint_rounds=constraint_rounds)
 
 
 def _simulate_and_write(*, garment: str, motion: str, body: str, betas: Optional[str], material: Optional[str],
                         device: Optional[str], frames: Optional[int], substeps: int, out: Path, video: bool,
                         self_contact: bool = False, newton_iterations: int = 1,
-                        strain_limit: Optional[float] = None) -> None:
+                        strain_limit: Optional[float] = None, constraint_rounds: int = 1) -> None:
     import numpy as np
 
     from simgen.garment import load_garment
@@ -435,6 +440,8 @@ def _simulate_and_write(*, garment: str, motion: str, body: str, betas: Optional
         raise InputError(f"--newton-iterations must be at least 1, got {newton_iterations}")
     if strain_limit is not None and not strain_limit > 0:
         raise InputError(f"--strain-limit must be a number > 0, got {strain_limit}")
+    if constraint_rounds < 1:
+        raise InputError(f"--constraint-rounds must be at least 1, got {constraint_rounds}")
     if material is not None:
         get_material(material)
     if device is not None and device not in ("cpu", "cuda") and not device.startswith("cuda:"):
@@ -444,7 +451,7 @@ def _simulate_and_write(*, garment: str, motion: str, body: str, betas: Optional
     cloth = load_garment(garment, body=model)
     clip = load_motion(motion)
     solver = dataclasses.replace(SimulationConfig().solver, newton_iterations=newton_iterations,
-                                 strain_limit=strain_limit)
+                                 strain_limit=strain_limit, constraint_rounds=constraint_rounds)
     if self_contact:
         from simgen.sim.energies import SelfContactParams
 

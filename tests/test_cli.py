@@ -258,8 +258,8 @@ def test_simulate_writes_npz_and_valid_usd(capsys, tmp_path):
 
     out_dir = tmp_path / "sim"
     code, out, err = run_main(["simulate", "--garment", "tshirt_1k", "--motion", "walk", "--frames", "2",
-                               "--substeps", "2", "--newton-iterations", "2", "--strain-limit", "0.5", "--device", "cpu",
-                               "--no-video",
+                               "--substeps", "2", "--newton-iterations", "2", "--strain-limit", "0.5",
+                               "--constraint-rounds", "2", "--device", "cpu", "--no-video",
                                "--out", str(out_dir)], capsys)
     assert code == 0, err
     data = np.load(out_dir / "tshirt_1k_walk.npz")
@@ -267,13 +267,21 @@ def test_simulate_writes_npz_and_valid_usd(capsys, tmp_path):
     usd = out_dir / "tshirt_1k_walk.usdc"
     assert validate_usd(usd) == []
     assert set(read_usd_meshes(usd)) == {"body", "tshirt_1k"}
-    assert json.loads(str(data["metadata"]))["solver"]["strain_limit"] == 0.5
+    solver = json.loads(str(data["metadata"]))["solver"]
+    assert solver["strain_limit"] == 0.5 and solver["constraint_rounds"] == 2
 
 
 def test_simulate_bad_strain_limit_exit_2(capsys, tmp_path):
     code, _, err = run_main(["simulate", "--garment", "tshirt_1k", "--motion", "walk", "--strain-limit", "-1",
                              "--out", str(tmp_path / "s")], capsys)
     assert code == 2 and "--strain-limit" in err
+    assert not (tmp_path / "s").exists()
+
+
+def test_simulate_bad_constraint_rounds_exit_2(capsys, tmp_path):
+    code, _, err = run_main(["simulate", "--garment", "tshirt_1k", "--motion", "walk", "--constraint-rounds", "0",
+                             "--out", str(tmp_path / "s")], capsys)
+    assert code == 2 and "--constraint-rounds" in err
     assert not (tmp_path / "s").exists()
 
 
