@@ -105,6 +105,7 @@ SOLVER_FIELDS: dict[str, tuple[type, float | None, bool]] = {
     "strain_limit": (float, 0.0, False),
     "strain_limit_iterations": (int, 1, True),
     "constraint_rounds": (int, 1, True),
+    "contact_stiffness": (float, 0.0, False),   # ContactParams.stiffness [J/m^3]
 }
 
 _TOP = ("name", "description", "garment", "body", "shapes", "motions", "solver", "protocol", "smoothing",
@@ -254,6 +255,10 @@ class DatasetSpec:
         from simgen.sim.energies import SelfContactParams
 
         kwargs = dict(self.solver)
+        if "contact_stiffness" in kwargs:
+            from simgen.sim.energies import ContactParams
+
+            kwargs["contact"] = ContactParams(stiffness=kwargs.pop("contact_stiffness"))
         if not self.friction:
             kwargs["friction"] = None
         if self.self_contact:
