@@ -271,24 +271,12 @@ def test_simulate_writes_npz_and_valid_usd(capsys, tmp_path):
     assert solver["strain_limit"] == 0.5 and solver["constraint_rounds"] == 2
 
 
-def test_simulate_bad_strain_limit_exit_2(capsys, tmp_path):
-    code, _, err = run_main(["simulate", "--garment", "tshirt_1k", "--motion", "walk", "--strain-limit", "-1",
+@pytest.mark.parametrize("flag, value", [("--strain-limit", "-1"), ("--constraint-rounds", "0"),
+                                         ("--newton-iterations", "0")])
+def test_simulate_bad_solver_flag_exit_2(capsys, tmp_path, flag, value):
+    code, _, err = run_main(["simulate", "--garment", "tshirt_1k", "--motion", "walk", flag, value,
                              "--out", str(tmp_path / "s")], capsys)
-    assert code == 2 and "--strain-limit" in err
-    assert not (tmp_path / "s").exists()
-
-
-def test_simulate_bad_constraint_rounds_exit_2(capsys, tmp_path):
-    code, _, err = run_main(["simulate", "--garment", "tshirt_1k", "--motion", "walk", "--constraint-rounds", "0",
-                             "--out", str(tmp_path / "s")], capsys)
-    assert code == 2 and "--constraint-rounds" in err
-    assert not (tmp_path / "s").exists()
-
-
-def test_simulate_bad_newton_iterations_exit_2(capsys, tmp_path):
-    code, _, err = run_main(["simulate", "--garment", "tshirt_1k", "--motion", "walk", "--newton-iterations", "0",
-                             "--out", str(tmp_path / "s")], capsys)
-    assert code == 2 and "--newton-iterations" in err
+    assert code == 2 and flag in err
     assert not (tmp_path / "s").exists()
 
 

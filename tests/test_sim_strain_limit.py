@@ -44,7 +44,8 @@ def test_one_triangle_is_clamped_to_the_limit_keeping_its_centroid_and_plane():
     model = ClothModel.from_mesh(REST, [[0, 1, 2]], "cotton", device=DEVICE, dtype=wp.float64)
     rng = np.random.default_rng(3)
     # Stretched 2.5x along a skew direction, 1.2x across it, then rotated out of its plane.
-    stretch = np.eye(3) + np.outer([0.6, 0.0, 0.8], [0.6, 0.0, 0.8]) * 1.5 + 0.2 * np.outer([-0.8, 0, 0.6], [-0.8, 0, 0.6])
+    along, across = np.array([0.6, 0.0, 0.8]), np.array([-0.8, 0.0, 0.6])
+    stretch = np.eye(3) + 1.5 * np.outer(along, along) + 0.2 * np.outer(across, across)
     q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
     x = (REST @ stretch.T) @ q.T + [0.3, 1.0, -0.2]
     before = stretches(x, REST, np.array([[0, 1, 2]]))[0]
