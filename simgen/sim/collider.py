@@ -65,6 +65,8 @@ def collider_kernels(scalar) -> SimpleNamespace:
         pinch_distance: float,
         depth_before: wp.array(dtype=scalar),
         count_inside: wp.array(dtype=wp.int32),
+        moved: wp.array(dtype=vec3),
+        mark_moved: int,
     ):
         i = wp.tid()
         inst = vertex_instance[i]
@@ -83,6 +85,8 @@ def collider_kernels(scalar) -> SimpleNamespace:
             return
         # Onto the surface (plus offset) along the outward normal of the closest feature.
         x[i] = x[i] + (offset - d) * n
+        if mark_moved != 0:
+            moved[i] = n
         # Remove the velocity component that moves into the body (relative to the body's surface).
         v_body = vec3(wp.mesh_eval_velocity(mesh, face, bu, bv))
         vn = wp.dot(v[i] - v_body, n)
@@ -263,7 +267,8 @@ class BodyCollider:
                              f"{model.num_instances} instances")
 
     def project(self, model, state, *, offset: float = 0.0, query_distance: float = 0.05,
-                pinch_distance: float = ContactParams.pinch_distance, depth=None, count=None) -> None:
+                pinch_distance: float = ContactParams.pinch_distance, depth=None, count=None,
+                moved=None) -> None:
         """Push every free cloth vertex inside its body (signed distance < 0) onto the surface.
 
         model: the ClothModel; state: its ClothState, modified in place: the position moves along
@@ -273,7 +278,9 @@ class BodyCollider:
         (:class:`ContactParams`; with :attr:`part_masks` and a model with home parts, cloth on its own
         part is not pushed out of another part pressing into it). Optional outputs, (I,) per instance, accumulated with max/add:
         depth [m] (model scalar) of the deepest vertex before projection, count (int32) of vertices
-        found inside (pinned ones included, though they are not moved).
+        found inside (pinned ones included, though they are not moved). moved: optional (V,) vec3 of
+        the model's scalar, set to the outward unit normal along which this call moved a vertex (left
+        as it is for the others: cleared by the caller).
         """
         self.check_model(model)
         if depth is None:
@@ -282,7 +289,8 @@ class BodyCollider:
             count = wp.zeros(model.num_instances, dtype=wp.int32, device=model.device)
         wp.launch(collider_kernels(model.scalar).project, dim=model.num_vertices, device=model.device, inputs=[
             state.positions, state.velocities, model.vertex_instance, model.vertex_pinned, self.mesh_ids,
-            offset, query_distance, *part_inputs(model, self.part_masks, pinch_distance), depth, count])
+            offset, query_distance, *part_inputs(model, self.part_masks, pinch_distance), depth, count,
+            moved if moved is not None else state.velocities, int(moved is not None)])
 
     def penetration(self, model, positions, *, query_distance: float = 0.05,
                     pinch_distance: float = ContactParams.pinch_distance) -> tuple[np.ndarray, np.ndarray]:

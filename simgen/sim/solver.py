@@ -321,6 +321,7 @@ class ImplicitSolver:
         self._depth = wp.zeros(ni, dtype=T.scalar, device=dev)
         self._depth_max = wp.zeros(ni, dtype=T.scalar, device=dev)
         self._inside = wp.zeros(ni, dtype=wp.int32, device=dev)
+        self._projected = wp.zeros(m.num_vertices, dtype=T.vec3, device=dev)
         self._counts = dict(steps=0, substeps=0, newton_iterations=0, retries=0, unresolved=0)
         # Per instance: substeps it failed (retried) and steps left unresolved, since reset_stats.
         self._instance_retries = np.zeros(ni, dtype=np.int64)
@@ -438,15 +439,20 @@ class ImplicitSolver:
             projecting = body is not None and cfg.project
             # Only the limiter and the projection alternate: a round without both is the same again.
             rounds = cfg.constraint_rounds if projecting and self.strain_limiter is not None else 1
-            for _ in range(rounds):
+            if rounds > 1:
+                self._projected.zero_()
+            for r in range(rounds):
                 if self.strain_limiter is not None:
-                    self.strain_limiter.apply(work, dt / n)
+                    # From the second round on, what the projection placed on the body stays out of it:
+                    # the limiter slides those vertices along the body and moves their neighbours.
+                    self.strain_limiter.apply(work, dt / n, outward=self._projected if r > 0 else None)
                 if projecting:
                     self._inside.zero_()
                     self._depth.zero_()
                     body.project(self.model, work, offset=cfg.projection_offset,
                                  query_distance=cfg.contact.query_distance,
-                                 pinch_distance=cfg.contact.pinch_distance, depth=self._depth, count=self._inside)
+                                 pinch_distance=cfg.contact.pinch_distance, depth=self._depth, count=self._inside,
+                                 moved=self._projected if rounds > 1 else None)
                     wp.launch(self.kernels.keep_max, dim=self.model.num_instances, device=self.model.device,
                               inputs=[self._depth, self._depth_max])
             if projecting:
