@@ -77,6 +77,7 @@ def test_tiny_is_small():
     (minimal(motions={"library": "walk", "max_frames": -1}), "motions.max_frames"),
     (minimal(smoothing={"mu": -0.1}), "smoothing.mu"),
     (minimal(execution={"batch_size": True}), "execution.batch_size"),
+    (minimal(execution={"overlap_writes": "no"}), "execution.overlap_writes"),
     (minimal(garment={"names": ["tshirt_1k"], "material": "kevlar"}), "garment.material"),
     (minimal(garment={"names": ["tshirt_1k"], "material_overrides": {"stiffness": 1.0}}),
      "garment.material_overrides.stiffness"),
@@ -147,6 +148,11 @@ def test_overrides():
         spec.with_overrides(device="gpu")
     # Content keys: execution settings are free, physics settings are not.
     assert spec.with_overrides(batch_size=2).content_hash("tshirt") == spec.content_hash("tshirt")
+    assert spec.overlap_writes and not spec.with_overrides(overlap_writes=False).overlap_writes
+    assert spec.with_overrides(overlap_writes=False).content_hash("tshirt") == spec.content_hash("tshirt")
+    assert parse_spec(minimal(execution={"overlap_writes": False}), source="s.toml").overlap_writes is False
+    with pytest.raises(InputError, match="execution.overlap_writes"):
+        spec.with_overrides(overlap_writes=1)
     assert spec.with_overrides(substeps=5).content_hash("tshirt") != spec.content_hash("tshirt")
 
 

@@ -363,12 +363,18 @@ def test_diverged_job_is_retried_with_smaller_steps(tmp_path, monkeypatch):
 
     monkeypatch.setattr(ex, "simulate_jobs", flaky_template)
     spec1 = spec.with_overrides(shapes=["zero"])
-    (rep,) = generate_dataset(spec1, out=str(tmp_path / "t"))
-    assert rep.pending == 0 and not rep.failed
-    assert calls == [(["template", "zero"], 10), (["template"], 20), (["walk_fast__zero"], 10), (["zero"], 10)]
-    ds = open_dataset(tmp_path / "t")
-    assert ds.template["stats"]["attempts"] == 2 and ds.fit("zero")["attrs"]["stats"]["substeps"] == 10
-    assert ds.manifest["failed"] == {}
+    # With the writes overlapped, the sequence batch simulates before the setup batch's result comes
+    # back, so the retries start one batch later; without, one batch at a time.
+    for overlap, order in ((True, [["template", "zero"], ["walk_fast__zero"], ["template"], ["zero"]]),
+                           (False, [["template", "zero"], ["template"], ["walk_fast__zero"], ["zero"]])):
+        calls.clear()
+        out = tmp_path / f"t-{overlap}"
+        (rep,) = generate_dataset(spec1.with_overrides(overlap_writes=overlap), out=str(out))
+        assert rep.pending == 0 and not rep.failed
+        assert calls == [(ids, 20 if ids == ["template"] else 10) for ids in order]
+        ds = open_dataset(out)
+        assert ds.template["stats"]["attempts"] == 2 and ds.fit("zero")["attrs"]["stats"]["substeps"] == 10
+        assert ds.manifest["failed"] == {}
 
     # A job that fails every attempt is recorded as failed: check reports it, the CLI exits 1.
     monkeypatch.setattr(ex, "simulate_jobs", lambda g, b, jobs, c, progress=None: [

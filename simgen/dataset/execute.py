@@ -11,9 +11,12 @@ takes no initial state.
 
 :func:`run_batch` runs in the driver (local execution) or in a Ray task: it simulates the jobs
 of one batch in one batched solver call (``simgen.sim.simulate_batch`` when present, else one
-``simulate`` per job), then writes each finished job as a committed node. Clips of unequal
-length share a batch: the batch runs to the longest clip and each result is cut to its own
-frames (simulate_batch's contract), so the planner groups clips of similar length. An instance
+``simulate`` per job), then writes each finished job as a committed node. The two phases are
+:func:`simulate_batch_task` (device work, on the thread that owns Warp) and :func:`write_batch`
+(host work: ground truth, statistics, Zarr, commits); the local executor runs the write of one
+batch in a background thread while the next batch simulates (:mod:`simgen.dataset.generate`).
+Clips of unequal length share a batch: the batch runs to the longest clip and each result is cut
+to its own frames (simulate_batch's contract), so the planner groups clips of similar length. An instance
 that diverges comes back as a failure in its slot while the others are written; the driver puts
 it into a later batch with the substep halved (attempt k runs substeps * 2^(k-1)) until
 ``execution.max_attempts``.
@@ -30,8 +33,8 @@ import numpy as np
 from simgen.dataset.storage import Location, StoreWriteError
 from simgen.errors import InputError
 
-__all__ = ["Job", "BatchTask", "run_batch", "rest_clip", "simulate_jobs", "job_cloth_frames", "SimFailure",
-           "quiet_warp"]
+__all__ = ["Job", "BatchTask", "SimulatedBatch", "run_batch", "simulate_batch_task", "write_batch", "rest_clip",
+           "simulate_jobs", "job_cloth_frames", "SimFailure", "quiet_warp"]
 
 
 @dataclass
@@ -192,21 +195,57 @@ def _rest_frames(result) -> np.ndarray:
     return np.asarray(result.protocol_positions)[phases == "rest"].astype(np.float32)
 
 
+@dataclass
+class SimulatedBatch:
+    """A batch between its two phases: simulated (host arrays), not written yet.
+
+    What :func:`write_batch` needs and nothing on the device: the task, the spec with its device
+    resolved, the solver config, garment and body (host objects), the jobs simulated (template
+    first), their results (SimulationResult or SimFailure), the outcomes of jobs whose node was
+    already committed, and the phase's timings (wall, step_s) and cloth-frames.
+    """
+
+    task: BatchTask
+    spec: object
+    config: object
+    garment: object
+    body: object
+    todo: list
+    results: list
+    reused: list
+    wall: float
+    step_s: float
+    cloth_frames: int
+
+
+def _outcome_base(job: Job) -> dict:
+    return {"kind": job.kind, "id": job.id, "attempt": job.attempt, "frames": job.frames, "motion": job.motion,
+            "shape_id": job.shape_id, "split": job.split}
+
+
 def run_batch(task: BatchTask, progress=None) -> dict:
     """Simulate one batch and write its nodes; returns {outcomes, error, wall, cloth_frames, step_s, write_s}.
 
-    wall [s]: the batch's simulation (``simulate_jobs``); step_s [s]: the solver's stepping within it
-    (the per-frame step times of the batch's longest job, protocol included; the rest of ``wall`` is
-    posing, statistics and host copies); write_s [s]: ground truth, statistics and store writes.
+    The two phases in sequence: :func:`simulate_batch_task`, then :func:`write_batch` (the local
+    executor may run the second in a background thread while the next batch simulates; Ray tasks
+    call this). wall [s]: the batch's simulation (``simulate_jobs``); step_s [s]: the solver's
+    stepping within it (the per-frame step times of the batch's longest job, protocol included; the
+    rest of ``wall`` is posing, statistics and host copies); write_s [s]: ground truth, statistics
+    and store writes.
 
     Jobs whose node is already committed (an earlier attempt of this task) are not simulated again.
     Each outcome: ok, kind, id, attempt, checksum (ok) or message (failed), frames, motion,
     shape_id, split. A write failure stops the batch: the outcomes so far are returned with
     ``error`` set to one sentence (the store stays consistent; what was committed is kept).
     """
-    from simgen.dataset.groundtruth import fit_displacement, smooth_garment
-    from simgen.dataset.quality import triangle_rest_inverse
+    return write_batch(simulate_batch_task(task, progress=progress))
 
+
+def simulate_batch_task(task: BatchTask, progress=None) -> SimulatedBatch:
+    """The simulation phase of :func:`run_batch`: runs on the thread that owns the device (Warp).
+
+    Raises what the simulation raises (and the testing hook's injected fault); writes nothing.
+    """
     _injected_fault()
     spec = task.spec
     loc = Location(task.location)
@@ -217,18 +256,12 @@ def run_batch(task: BatchTask, progress=None) -> dict:
     if task.device is not None:
         spec = replace(spec, device=task.device)
     config = spec.solver_config(substeps_factor=task.substeps_factor)
-    rest_inv = triangle_rest_inverse(garment.vertices, garment.faces)
-    outcomes: list[dict] = []
-
-    def base(job):
-        return {"kind": job.kind, "id": job.id, "attempt": job.attempt, "frames": job.frames, "motion": job.motion,
-                "shape_id": job.shape_id, "split": job.split}
-
+    reused: list[dict] = []
     todo = []
     for job in task.jobs:
         commit = loc.committed(_node_rel(job))
         if commit is not None:
-            outcomes.append({**base(job), "ok": True, "checksum": commit["checksum"], "reused": True})
+            reused.append({**_outcome_base(job), "ok": True, "checksum": commit["checksum"], "reused": True})
         else:
             todo.append(job)
     # Template first: the fits of the same batch need its smoothed version.
@@ -236,10 +269,30 @@ def run_batch(task: BatchTask, progress=None) -> dict:
     t0 = time.perf_counter()
     results = simulate_jobs(garment, body, todo, config, progress=progress) if todo else []
     wall = time.perf_counter() - t0
-    t_write = time.perf_counter()
     step_s = max((float(np.sum(r.stats["step_time"])) + float(np.sum(r.protocol_stats.get("step_time", 0.0)))
                   for r in results if not isinstance(r, SimFailure) and "step_time" in r.stats), default=0.0)
-    cloth_frames = job_cloth_frames(spec, todo)
+    return SimulatedBatch(task=task, spec=spec, config=config, garment=garment, body=body, todo=todo,
+                          results=results, reused=reused, wall=wall, step_s=step_s,
+                          cloth_frames=job_cloth_frames(spec, todo))
+
+
+def write_batch(simulated: SimulatedBatch) -> dict:
+    """The write phase of :func:`run_batch`: ground truth, statistics and one committed node per job.
+
+    Host work only (numpy, Zarr, the store), so it may run in a thread other than the simulation's.
+    Returns :func:`run_batch`'s dict; a :class:`StoreWriteError` ends the batch with ``error`` set.
+    """
+    from simgen.dataset.groundtruth import fit_displacement, smooth_garment
+    from simgen.dataset.quality import triangle_rest_inverse
+
+    t_write = time.perf_counter()
+    sb = simulated
+    spec, config, garment, body, wall = sb.spec, sb.config, sb.garment, sb.body, sb.wall
+    todo, results, cloth_frames = sb.todo, sb.results, sb.cloth_frames
+    loc = Location(sb.task.location)
+    base = _outcome_base
+    outcomes: list[dict] = list(sb.reused)
+    rest_inv = triangle_rest_inverse(garment.vertices, garment.faces)
     smoothing = spec.smoothing_params()
     faces = np.asarray(garment.faces)
     template_smoothed = None
@@ -307,7 +360,7 @@ def run_batch(task: BatchTask, progress=None) -> dict:
             error = str(exc)
             break
         outcomes.append({**base(job), "ok": True, "checksum": commit["checksum"]})
-    return {"outcomes": outcomes, "error": error, "wall": wall, "cloth_frames": cloth_frames, "step_s": step_s,
+    return {"outcomes": outcomes, "error": error, "wall": wall, "cloth_frames": cloth_frames, "step_s": sb.step_s,
             "write_s": time.perf_counter() - t_write}
 
 

@@ -6,7 +6,9 @@ One store per garment (DESIGN.md). For each store the driver:
    content key is refused), takes its lock and reconciles it with the manifest (resume after kill -9);
 2. plans the jobs (:func:`plan_jobs`) and keeps those whose node is not in the manifest;
 3. runs a first batch with the template relaxation and the pending fits, then the pending sequences
-   in batches of ``execution.batch_size`` clips of similar length (longest first);
+   in batches of ``execution.batch_size`` clips of similar length (longest first); locally, the
+   write phase of a batch runs in a background thread while the next batch simulates
+   (``execution.overlap_writes``, :class:`_LocalExecutor`); results are entered in batch order;
 4. enters every outcome into the manifest (rewritten atomically after each batch) and re-queues a
    failed job (diverged) into a later batch with the substep halved, up to ``max_attempts``.
 
@@ -20,11 +22,13 @@ import hashlib
 import json
 import time
 from collections import deque
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from simgen.dataset.execute import BatchTask, Job, job_cloth_frames, rest_clip, run_batch
+from simgen.dataset.execute import (BatchTask, Job, job_cloth_frames, rest_clip, run_batch, simulate_batch_task,
+                                    write_batch)
 from simgen.dataset.spec import DatasetSpec, load_spec
 from simgen.dataset.storage import FORMAT_VERSION, Location, StoreWriteError
 from simgen.dataset.store import DatasetStore
@@ -51,10 +55,15 @@ class StoreReport:
     failed: dict = field(default_factory=dict)
     pending: int = 0
     cloth_frames: int = 0
+    # Timings. wall is the run's wall clock; the others are summed over batches, phase by phase. With
+    # execution.overlap_writes (local runs) a batch is written while the next one simulates, so
+    # simulate_wall + write_wall exceeds wall by the write time hidden that way; write_wait is the
+    # part of write_wall the driver waited for (all of it without the overlap, and on Ray).
     wall: float = 0.0
     simulate_wall: float = 0.0  # [s] summed over batches: simulate_batch calls
     step_wall: float = 0.0      # [s] of which the solver's stepping (the rest: posing, statistics, copies)
     write_wall: float = 0.0     # [s] ground truth, statistics and store writes
+    write_wait: float = 0.0     # [s] of write_wall not hidden behind a simulation
     stopped: str | None = None
     reconcile: dict = field(default_factory=dict)
 
@@ -165,26 +174,106 @@ def _batches(spec: DatasetSpec, jobs: list[Job], attempt: int) -> list[list[Job]
     return out
 
 
+@dataclass
+class _Pending:
+    """A batch of the local executor past its simulation: waiting for the writer, being written
+    (future) or failed (error, raised when its result is asked for)."""
+
+    task: BatchTask
+    simulated: object = None
+    future: Future | None = None
+    error: BaseException | None = None
+
+
 class _LocalExecutor:
-    """Runs each batch in this process when its result is asked for (so progress is live)."""
+    """Runs the batches in this process; results come back in submission order.
 
-    parallel = 1
+    The simulation phase (:func:`simulate_batch_task`) runs in the calling thread when a result is
+    asked for, so progress is live and Warp stays on one thread. With ``overlap`` (the spec's
+    ``execution.overlap_writes``) the write phase (:func:`write_batch`: ground truth, statistics,
+    Zarr, commits; host work only) runs in one background thread, one batch at a time:
+    :meth:`next_result` starts the write of the oldest simulated batch, simulates the next queued
+    batch meanwhile, then waits for that write and returns its result. The driver keeps
+    ``parallel`` = 2 batches in flight, so batch k is written while batch k+1 simulates, and a
+    batch's write starts only once the driver has recorded the one before it: when a write fails,
+    no later batch has been written. Without ``overlap``: :func:`run_batch`, one batch at a time.
 
-    def __init__(self) -> None:
-        self.queue: deque = deque()
+    ``simultaneous`` is how many simulations run at the same time (1 here; one per worker on Ray):
+    what the driver's time-budget estimate divides the throughput by.
+
+    An exception of a simulation is raised when that batch's result is asked for (the batch being
+    written is returned first), one of a write when its result is; a :class:`StoreWriteError` comes
+    back in the result's ``error`` as from :func:`run_batch`. :meth:`drain` drops the batches not
+    written and waits for the write in progress (the driver calls it before it releases the store's
+    lock); :meth:`close` drains and stops the thread.
+    """
+
+    simultaneous = 1
+
+    def __init__(self, overlap: bool = True) -> None:
+        self.overlap = overlap
+        self.parallel = 2 if overlap else 1
+        self.queue: deque = deque()    # (task, progress): submitted, not simulated yet
+        self.pending: deque = deque()  # _Pending, oldest first; only the oldest may be being written
+        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="simgen-write") if overlap else None
 
     def submit(self, task: BatchTask, progress) -> None:
         self.queue.append((task, progress))
 
     def in_flight(self) -> int:
-        return len(self.queue)
+        return len(self.queue) + len(self.pending)
+
+    def _start_write(self) -> None:
+        head = self.pending[0] if self.pending else None
+        if head is not None and head.future is None and head.error is None:
+            head.future = self._pool.submit(write_batch, head.simulated)
+            head.simulated = None
 
     def next_result(self):
-        task, progress = self.queue.popleft()
-        return task, run_batch(task, progress=progress)
+        if self._pool is None:
+            task, progress = self.queue.popleft()
+            return task, run_batch(task, progress=progress)
+        self._start_write()
+        while self.queue and len(self.pending) < self.parallel and not any(p.error for p in self.pending):
+            task, progress = self.queue.popleft()
+            try:
+                simulated = simulate_batch_task(task, progress=progress)
+            except Exception as exc:
+                if not self.pending:
+                    raise
+                self.pending.append(_Pending(task, error=exc))  # raised in order, after the batch being written
+                break
+            self.pending.append(_Pending(task, simulated=simulated))
+            self._start_write()
+        head = self.pending[0]
+        if head.error is not None:
+            self.pending.popleft()
+            raise head.error
+        t0 = time.perf_counter()
+        try:
+            result = head.future.result()
+        finally:
+            if head.future.done():  # else (interrupted while waiting) drain() waits for it
+                self.pending.popleft()
+        waited = time.perf_counter() - t0  # the part of this batch's write the simulation meanwhile did not hide
+        return head.task, {**result, "write_wait": min(waited, result["write_s"])}
+
+    def drain(self) -> None:
+        """Drop the batches not written yet and wait for the write in progress, if any."""
+        self.queue.clear()
+        pending, self.pending = list(self.pending), deque()
+        for p in pending:
+            if p.future is not None:
+                try:
+                    p.future.result()
+                except Exception:  # noqa: BLE001 - an error is already on its way up; the store stays consistent
+                    pass
 
     def close(self) -> None:
-        pass
+        self.drain()
+        if self._pool is not None:
+            self._pool.shutdown(wait=True)
+            self._pool = None
 
 
 def generate_dataset(spec, out: str | None = None, *, ray: str | None = None, max_sequences: int | None = None,
@@ -239,6 +328,8 @@ def generate_dataset(spec, out: str | None = None, *, ray: str | None = None, ma
                 report.pending = seq_total - len(store.manifest["sequences"])
                 reports.append(report)
             finally:
+                if executor is not None and hasattr(executor, "drain"):
+                    executor.drain()  # no write of ours may run once the lock is released
                 store.release()
     finally:
         if executor is not None:
@@ -248,7 +339,7 @@ def generate_dataset(spec, out: str | None = None, *, ray: str | None = None, ma
 
 def _make_executor(ray: str | None, spec: DatasetSpec):
     if ray is None:
-        return _LocalExecutor()
+        return _LocalExecutor(overlap=spec.overlap_writes)
     from simgen.dataset.distributed import RayExecutor
 
     return RayExecutor(ray, spec)
@@ -257,16 +348,25 @@ def _make_executor(ray: str | None, spec: DatasetSpec):
 def _drive(spec, store, garment, body, pending, executor, report, progress, time_budget, t_start, say, device):
     batches = deque((1, b) for b in _batches(spec, pending, 1))
     total = [sum(job_cloth_frames(spec, b) for _, b in batches)]
-    done = [0]
+    done = [0]       # cloth-frames of the batches whose result came back
+    submitted = [0]  # cloth-frames of the batches submitted (a batch's progress starts there)
+    shown = [0]      # progress never goes back (a result may come back after the next batch simulated)
     rate = [0.0]  # cloth-frames per second measured so far (0: unknown)
+    # Simulations running at the same time: the local executor simulates one batch at a time even
+    # while it writes another (parallel 2); Ray runs `parallel` batches at once.
+    simultaneous = getattr(executor, "simultaneous", executor.parallel)
     t0 = time.perf_counter()
-    if progress is not None:
-        progress(0, total[0])
+
+    def show(n):
+        if progress is not None:
+            shown[0] = max(shown[0], min(n, total[0]))
+            progress(shown[0], total[0])
+
+    show(0)
 
     def batch_progress(base):
         def cb(n):
-            if progress is not None:
-                progress(min(base + n, total[0]), total[0])
+            show(base + n)
         return cb
 
     while batches or executor.in_flight():
@@ -275,8 +375,10 @@ def _drive(spec, store, garment, body, pending, executor, report, progress, time
             frames = job_cloth_frames(spec, jobs)
             if time_budget is not None and (report.cloth_frames or executor.in_flight()):
                 elapsed = time.perf_counter() - t_start
-                # rate is the throughput of all workers together; one batch runs on one of them.
-                est = frames * executor.parallel / rate[0] if rate[0] > 0 else 0.0
+                # rate is the throughput of all workers together; one batch runs on one of them. Locally
+                # (one simulation at a time) that is frames / rate, writes included; with the overlap
+                # the last batch's write may still run past the estimate (drained before returning).
+                est = frames * simultaneous / rate[0] if rate[0] > 0 else 0.0
                 if elapsed + est > time_budget:
                     report.stopped = f"time budget of {time_budget:g} s reached"
                     batches.clear()
@@ -284,7 +386,8 @@ def _drive(spec, store, garment, body, pending, executor, report, progress, time
             batches.popleft()
             task = BatchTask(location=store.loc.root if store.loc.is_local else store.loc.url(), spec=spec,
                              garment=garment.name, jobs=jobs, attempt=attempt, device=device, body_hash=body.hash)
-            executor.submit(task, batch_progress(done[0]))
+            executor.submit(task, batch_progress(submitted[0]))
+            submitted[0] += frames
         if not executor.in_flight():
             break
         task, result = executor.next_result()
@@ -293,6 +396,7 @@ def _drive(spec, store, garment, body, pending, executor, report, progress, time
         report.simulate_wall += result["wall"]
         report.step_wall += result.get("step_s", 0.0)
         report.write_wall += result.get("write_s", 0.0)
+        report.write_wait += result.get("write_wait", result.get("write_s", 0.0))
         report.wall = time.perf_counter() - t0
         rate[0] = report.cloth_frames_per_second
         retry, waiting = [], []
@@ -322,8 +426,7 @@ def _drive(spec, store, garment, body, pending, executor, report, progress, time
                               "message": "the template relaxation failed"})
             waiting = []
         store.save_manifest()
-        if progress is not None:
-            progress(min(done[0], total[0]), total[0])
+        show(done[0])
         if result["error"]:
             raise StoreWriteError(result["error"])
         # The template's retry runs next, alone; the fits waiting for it follow at their own attempt.
