@@ -455,8 +455,8 @@ class ImplicitSolver:
                 self._projected.zero_()
             for r in range(rounds):
                 if self.strain_limiter is not None:
-                    # From the second round on, what the projection placed on the body stays out of it:
-                    # the limiter slides those vertices along the body and moves their neighbours.
+                    # With the half-space rule, from the second round on what the projection placed on
+                    # the body stays out of it: the limiter slides those vertices along the body.
                     self.strain_limiter.apply(work, dt / n, outward=self._projected if r > 0 and half_space else None)
                 if projecting:
                     self._inside.zero_()
