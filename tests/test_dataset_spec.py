@@ -79,6 +79,7 @@ def test_tiny_is_small():
     (minimal(smoothing={"mu": -0.1}), "smoothing.mu"),
     (minimal(execution={"batch_size": True}), "execution.batch_size"),
     (minimal(execution={"overlap_writes": "no"}), "execution.overlap_writes"),
+    (minimal(execution={"retry_strain_outliers": 0}), "execution.retry_strain_outliers"),
     (minimal(garment={"names": ["tshirt_1k"], "material": "kevlar"}), "garment.material"),
     (minimal(garment={"names": ["tshirt_1k"], "material_overrides": {"stiffness": 1.0}}),
      "garment.material_overrides.stiffness"),

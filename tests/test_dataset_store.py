@@ -328,6 +328,39 @@ def test_write_failure_is_one_error_and_resumable(tmp_path, monkeypatch, capsys)
     assert check_dataset(out).passed
 
 
+@pytest.mark.parametrize("retry", [True, False])
+def test_strain_outlier_is_retried_with_smaller_steps(tmp_path, monkeypatch, retry):
+    """A sequence whose first attempt has a frame with a triangle past the check's strain limit (one
+    vertex thrown 20 cm here) is simulated again with the substep halved, and the store passes the
+    check; with execution.retry_strain_outliers off it is written as it is and the check fails."""
+    import simgen.dataset.execute as ex
+
+    original = ex.simulate_jobs
+
+    def spiky(garment, body, jobs, config, progress=None):
+        res = original(garment, body, jobs, config, progress=progress)
+        for j, r in zip(jobs, res):
+            if j.id == "walk_fast__b1p2" and j.attempt == 1:
+                r.positions[-1, 0] += np.array([0.2, 0.0, 0.0], dtype=r.positions.dtype)
+        return res
+
+    monkeypatch.setattr(ex, "simulate_jobs", spiky)
+    spec = micro(retry_strain_outliers=retry)
+    out = tmp_path / "s"
+    (rep,) = generate_dataset(spec, out=str(out))
+    assert rep.pending == 0 and not rep.failed and rep.written == 2
+    ds = open_dataset(out)
+    a = ds.sequence("walk_fast__b1p2")["attrs"]["stats"]
+    report = check_dataset(out)
+    if retry:
+        assert a["attempts"] == 2 and a["substeps"] == 2 * spec.substeps and a["strain_max"] < 1.0
+        assert report.passed, report.format()
+    else:
+        assert a["attempts"] == 1 and a["strain_max"] > 1.0
+        assert "strain" in [p["check"] for p in report.to_dict()["problems"]]
+    assert ds.sequence("walk_fast__zero")["attrs"]["stats"]["attempts"] == 1
+
+
 def test_diverged_job_is_retried_with_smaller_steps(tmp_path, monkeypatch):
     """simulate_batch's contract: a failing instance is a failure in its slot; the driver re-runs it in
     a later batch with the substep halved while the others are kept."""

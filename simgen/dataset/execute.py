@@ -19,7 +19,8 @@ Clips of unequal length share a batch: the batch runs to the longest clip and ea
 to its own frames (simulate_batch's contract), so the planner groups clips of similar length. An instance
 that diverges comes back as a failure in its slot while the others are written; the driver puts
 it into a later batch with the substep halved (attempt k runs substeps * 2^(k-1)) until
-``execution.max_attempts``.
+``execution.max_attempts``. A sequence with a strain outlier (a triangle past the check's limit
+on some frame) is such a failure too while attempts are left (:func:`_strain_outlier`).
 """
 
 from __future__ import annotations
@@ -190,6 +191,28 @@ def _frame_stats(result, faces, rest_inverse) -> tuple[dict, dict]:
     return per_frame, summary
 
 
+def _strain_outlier(spec, job: Job, per_frame: dict) -> str | None:
+    """Why a simulated sequence is to be simulated again, or None.
+
+    A sequence with a frame where one triangle is stretched past the limit of ``simgen dataset
+    check`` is a failed attempt while attempts are left (``execution.retry_strain_outliers``): such
+    spikes come from a vertex the step left deep inside a fast limb, and a smaller substep makes
+    that intrusion smaller. The last attempt is written whatever its strain (the check reports
+    it). Outliers at body self-intersections, which the check counts apart, are retried too: telling
+    them apart needs the body re-posed, a device job this host-side phase leaves to the check.
+    """
+    from simgen.dataset.check import DEFAULT_MAX_STRAIN
+
+    if job.kind != "sequence" or not spec.retry_strain_outliers or job.attempt >= spec.max_attempts:
+        return None
+    strain = np.asarray(per_frame.get("strain_max", ()))
+    if strain.size == 0 or not strain.max() > DEFAULT_MAX_STRAIN:
+        return None
+    k = int(np.argmax(strain))
+    return (f"strain outlier: a triangle stretched {100 * strain[k]:.0f}% at frame {k} (the check's limit is "
+            f"{100 * DEFAULT_MAX_STRAIN:g}%; {int(np.sum(strain > DEFAULT_MAX_STRAIN))} frames over it)")
+
+
 def _rest_frames(result) -> np.ndarray:
     phases = np.asarray(result.protocol_phases)
     return np.asarray(result.protocol_positions)[phases == "rest"].astype(np.float32)
@@ -309,6 +332,10 @@ def write_batch(simulated: SimulatedBatch) -> dict:
             outcomes.append({**base(job), "ok": False, "message": msg})
             continue
         per_frame, summary = _frame_stats(res, faces, rest_inv)
+        outlier = _strain_outlier(spec, job, per_frame)
+        if outlier is not None:
+            outcomes.append({**base(job), "ok": False, "message": outlier})
+            continue
         share = wall * (spec.protocol_frames() + job.frames - 1) / max(cloth_frames, 1)
         summary.update(wall_time=share, batch_wall_time=wall, batch_size=len(todo), attempts=job.attempt,
                        substeps=config.substeps, device=str(config.device))

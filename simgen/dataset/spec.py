@@ -59,6 +59,8 @@ Layout (every table and field optional except ``garment.names``)::
     max_attempts = 3                          # tries per job; each retry halves the substep
     chunk_frames = 32                         # frames per Zarr chunk
     overlap_writes = true                     # local runs: write batch k while batch k+1 simulates
+    retry_strain_outliers = true              # a sequence with a triangle past the check's strain limit is
+                                              # simulated again with the substep halved (max_attempts)
 
     [output]
     path = "datasets/thesis-tshirt"           # default of --out (relative to the working folder)
@@ -121,7 +123,7 @@ _SECTIONS = {
     "solver": ("device", "fps", "substeps", "friction", "self_contact", *SOLVER_FIELDS),
     "protocol": ("relax_frames", "ramp_frames", "rest_frames", "store_rest_frames"),
     "smoothing": ("method", "iterations", "lambda", "mu", "boundary"),
-    "execution": ("batch_size", "max_attempts", "chunk_frames", "overlap_writes"),
+    "execution": ("batch_size", "max_attempts", "chunk_frames", "overlap_writes", "retry_strain_outliers"),
     "output": ("path",),
 }
 
@@ -184,6 +186,7 @@ class DatasetSpec:
     max_attempts: int = 3
     chunk_frames: int = 32
     overlap_writes: bool = True
+    retry_strain_outliers: bool = True
     output: str | None = None
     source: str = "<dict>"
     base_dir: str = "."
@@ -339,7 +342,7 @@ class DatasetSpec:
         """A copy with CLI overrides applied and validated (None values are ignored).
 
         Keys: device, batch_size, substeps, max_frames, motions (list of library names/patterns),
-        shapes (list of shape ids to keep), material, output, overlap_writes.
+        shapes (list of shape ids to keep), material, output, overlap_writes, retry_strain_outliers.
         """
         d = copy.copy(self)
         d.solver = dict(self.solver)
@@ -359,7 +362,8 @@ class DatasetSpec:
                                      f"{', '.join(known)}")
                 d.shapes_generator = "list"
                 d.shape_list = tuple(known[s] for s in value)
-            elif key in ("device", "batch_size", "substeps", "max_frames", "material", "output", "overlap_writes"):
+            elif key in ("device", "batch_size", "substeps", "max_frames", "material", "output", "overlap_writes",
+                         "retry_strain_outliers"):
                 setattr(d, key, value)
             else:
                 raise InputError(f"unknown spec override {key!r}")
@@ -569,6 +573,7 @@ def parse_spec(doc: dict, *, source: str = "<dict>", base_dir: str | Path = ".",
     spec.max_attempts = e.get("max_attempts", 3, int, low=1)
     spec.chunk_frames = e.get("chunk_frames", 32, int, low=1)
     spec.overlap_writes = e.get("overlap_writes", True, bool)
+    spec.retry_strain_outliers = e.get("retry_strain_outliers", True, bool)
 
     o = _Reader(source, _table(source, doc, "output"), "output.")
     spec.output = o.get("path", None, str)
@@ -588,9 +593,10 @@ def _validate_scalars(spec: DatasetSpec, where: str) -> None:
         v = getattr(spec, name)
         if isinstance(v, bool) or not isinstance(v, int) or v < low:
             raise InputError(f"{where}: field '{name}' must be an integer >= {low}, got {v!r}")
-    if not isinstance(spec.overlap_writes, bool):
-        raise InputError(f"{where}: field 'execution.overlap_writes' must be true or false, "
-                         f"got {spec.overlap_writes!r}")
+    for name in ("overlap_writes", "retry_strain_outliers"):
+        if not isinstance(getattr(spec, name), bool):
+            raise InputError(f"{where}: field 'execution.{name}' must be true or false, "
+                             f"got {getattr(spec, name)!r}")
     if spec.material is not None and spec.material not in MATERIALS:
         raise InputError(f"{where}: field 'garment.material' is {spec.material!r}, not one of the presets "
                          f"{', '.join(MATERIALS)}")
