@@ -125,6 +125,10 @@ def main(argv=None) -> int:
             "time_split_s": {"solver_steps": r.step_wall, "simulate_other": r.simulate_wall - r.step_wall,
                              "write": r.write_wall, "write_hidden": r.write_wall - r.write_wait,
                              "other": r.wall - r.simulate_wall - r.write_wait},
+            # Jobs simulated again (diverged, or a strain outlier with execution.retry_strain_outliers)
+            # and what their later attempts cost (included above).
+            "retries": {"jobs": r.retried, "cloth_frames": r.retry_cloth_frames,
+                        "simulate_s": r.retry_simulate_wall},
             "output_frames_stored": out_frames,
             "stopped": r.stopped,
             "thesis_tshirt_plan": thesis_plan,

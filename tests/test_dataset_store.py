@@ -355,8 +355,11 @@ def test_strain_outlier_is_retried_with_smaller_steps(tmp_path, monkeypatch, ret
     if retry:
         assert a["attempts"] == 2 and a["substeps"] == 2 * spec.substeps and a["strain_max"] < 1.0
         assert report.passed, report.format()
+        frames = spec.protocol_frames() + ds.sequence_info("walk_fast__b1p2")["frames"] - 1  # frame 0: no step
+        assert rep.retried == 1 and rep.retry_cloth_frames == frames and rep.retry_simulate_wall > 0
     else:
         assert a["attempts"] == 1 and a["strain_max"] > 1.0
+        assert rep.retried == 0 and rep.retry_cloth_frames == 0
         assert "strain" in [p["check"] for p in report.to_dict()["problems"]]
     assert ds.sequence("walk_fast__zero")["attrs"]["stats"]["attempts"] == 1
 
@@ -380,6 +383,7 @@ def test_diverged_job_is_retried_with_smaller_steps(tmp_path, monkeypatch):
     (rep,) = generate_dataset(spec, out=str(tmp_path / "s"))
     assert rep.pending == 0 and not rep.failed and rep.written == 2
     assert calls[-1] == (["walk_fast__b1p2"], 2 * spec.substeps)
+    assert rep.retried == 1 and rep.retry_cloth_frames > 0
     ds = open_dataset(tmp_path / "s")
     a = ds.sequence("walk_fast__b1p2")["attrs"]["stats"]
     assert a["attempts"] == 2 and a["substeps"] == 2 * spec.substeps

@@ -92,6 +92,8 @@ def run_generate(spec_arg, *, out=None, ray=None, max_sequences=None, time_budge
         print(f"{r.path}: {r.garment}: {r.written} sequences written now, "
               f"{r.planned_sequences - r.pending} of {r.planned_sequences} done, {state}; "
               f"{r.cloth_frames} cloth-frames in {r.wall:.1f} s ({r.cloth_frames_per_second:.1f}/s)"
+              + (f"; {r.retried} jobs simulated again ({r.retry_cloth_frames} cloth-frames, "
+                 f"{r.retry_simulate_wall:.1f} s)" if r.retried else "")
               + (f"; stopped: {r.stopped}" if r.stopped else ""))
         for key, msg in r.failed.items():
             print(f"failed: {key}: {msg}", file=sys.stderr)

@@ -64,6 +64,11 @@ class StoreReport:
     step_wall: float = 0.0      # [s] of which the solver's stepping (the rest: posing, statistics, copies)
     write_wall: float = 0.0     # [s] ground truth, statistics and store writes
     write_wait: float = 0.0     # [s] of write_wall not hidden behind a simulation
+    # Jobs simulated again (divergence or a strain outlier), and what the batches of those later
+    # attempts cost: their cloth-frames (also in cloth_frames) and simulation wall [s].
+    retried: int = 0
+    retry_cloth_frames: int = 0
+    retry_simulate_wall: float = 0.0
     stopped: str | None = None
     reconcile: dict = field(default_factory=dict)
 
@@ -413,6 +418,9 @@ def _drive(spec, store, garment, body, pending, executor, report, progress, time
         report.step_wall += result.get("step_s", 0.0)
         report.write_wall += result.get("write_s", 0.0)
         report.write_wait += result.get("write_wait", result.get("write_s", 0.0))
+        if task.attempt > 1:
+            report.retry_cloth_frames += result["cloth_frames"]
+            report.retry_simulate_wall += result["wall"]
         report.wall = time.perf_counter() - t0
         rate[0] = _budget_rate(report, simultaneous)
         retry, waiting = [], []
@@ -433,6 +441,7 @@ def _drive(spec, store, garment, body, pending, executor, report, progress, time
                     say(f"{job.key} failed on attempt {job.attempt} ({o['message']}); retrying with "
                         f"{spec.substeps * 2 ** job.attempt} substeps")
                     retry.append(Job(**{**job.__dict__, "attempt": job.attempt + 1}))
+                    report.retried += 1
                 else:
                     report.failed[job.key] = o["message"]
         if "template:template" in report.failed:
