@@ -74,13 +74,22 @@ def solver_config(self_contact: bool, newton_iterations: int = 1):
 
 
 def run_motion(garment, body, motion: str, n: int, *, device: str, frames: int, substeps: int,
-               cuda_graph: bool, self_contact: bool = False, newton_iterations: int = 1) -> dict:
+               cuda_graph: bool, self_contact: bool = False, newton_iterations: int = 1, preset=None) -> dict:
+    """preset: a DatasetSpec whose simulation config (material, solver settings, substeps, protocol)
+    replaces the bench's own (substeps, self_contact and newton_iterations are then the spec's)."""
+    from dataclasses import replace
+
     from simgen.sim import SimulationConfig, SimulationFailure, SimulationJob, simulate_batch
 
     betas = shape_batch(n, body.num_betas)
     jobs = [SimulationJob(motion, betas=betas[i], frames=frames, key=str(i)) for i in range(n)]
-    cfg = SimulationConfig(substeps=substeps, device=device, cuda_graph=cuda_graph,
-                           solver=solver_config(self_contact, newton_iterations))
+    if preset is not None:
+        cfg = replace(preset.solver_config(), device=device, cuda_graph=cuda_graph)
+        substeps, self_contact = cfg.substeps, preset.self_contact
+        newton_iterations = cfg.solver.newton_iterations
+    else:
+        cfg = SimulationConfig(substeps=substeps, device=device, cuda_graph=cuda_graph,
+                               solver=solver_config(self_contact, newton_iterations))
     memory = {"before": used_memory_mb(device), "built": None}
 
     def on_frame(done, total, phase):
@@ -97,7 +106,7 @@ def run_motion(garment, body, motion: str, n: int, *, device: str, frames: int, 
     per_substep = lambda key: float(np.mean(r0.stats[key][1:])) / substeps
     protocol_frames = len(r0.protocol_positions)
     row = {
-        "mode": "motion", "motion": motion, "instances": n, "self_contact": self_contact, "frames": frames,
+        "mode": "motion", "motion": motion, "preset": preset.name if preset is not None else None, "instances": n, "self_contact": self_contact, "frames": frames,
         "substeps": substeps,
         "cuda_graph": bool(cuda_graph and wp.get_device(device).is_cuda),
         "ms_per_frame_median": median,
@@ -204,6 +213,10 @@ def main() -> None:
     parser.add_argument("--newton-iterations", type=int, default=1, help="our solver's Newton iterations per substep")
     parser.add_argument("--peers", nargs="*", default=[], choices=["vbd", "style3d"])
     parser.add_argument("--vbd-iterations", type=int, default=10)
+    parser.add_argument("--preset", default=None,
+                        help="motion mode with a dataset spec's garment, material and solver settings (a preset "
+                             "name or TOML path; --substeps, --self-contact and --newton-iterations then come "
+                             "from the spec)")
     parser.add_argument("--out", type=Path, default=None)
     args = parser.parse_args()
 
@@ -214,6 +227,13 @@ def main() -> None:
     wp.init()
     device = args.device or str(wp.get_preferred_device())
     dev = wp.get_device(device)
+    preset = None
+    if args.preset is not None:
+        from simgen.dataset import load_spec
+
+        preset = load_spec(args.preset)
+        args.garment, args.substeps, args.fps = preset.garments[0], preset.substeps, preset.fps
+        args.self_contact = "on" if preset.self_contact else "off"
     body = load("open")
     garment = load_garment(args.garment, body=body)
     result = {
@@ -225,7 +245,7 @@ def main() -> None:
         "warp": wp.__version__,
         "garment": {"name": garment.name, "vertices": garment.num_vertices, "triangles": garment.num_triangles},
         "body_vertices": body.num_vertices,
-        "substeps_per_frame": args.substeps, "fps": args.fps,
+        "substeps_per_frame": args.substeps, "fps": args.fps, "preset": args.preset,
         "runs": [],
     }
 
@@ -241,7 +261,7 @@ def main() -> None:
             if "motion" in args.modes:
                 emit(run_motion(garment, body, args.motion, n, device=device, frames=args.frames,
                                 substeps=args.substeps, cuda_graph=not args.no_graph, self_contact=sc,
-                                newton_iterations=args.newton_iterations))
+                                newton_iterations=args.newton_iterations, preset=preset))
             if "static" in args.modes:
                 emit(run_static(garment, body, n, device=device, frames=args.frames, substeps=args.substeps,
                                 fps=args.fps, self_contact=sc))

@@ -53,14 +53,19 @@ def phase_of(name: str) -> str:
 
 
 def profile(garment, body, n: int, *, device: str, frames: int, substeps: int, fps: float, self_contact: bool,
-            warmup: int = 3) -> dict:
+            warmup: int = 3, preset=None) -> dict:
+    """preset: a DatasetSpec whose material and solver settings replace the defaults."""
     from simgen.sim import BodyCollider, ClothModel, ImplicitSolver, SolverConfig
     from simgen.sim.energies import SelfContactParams
 
-    model = ClothModel.concatenate([ClothModel.from_garment(garment, device=device)] * n)
+    material, config = None, SolverConfig(projection_offset=2.0e-4,
+                                          self_contact=SelfContactParams() if self_contact else None)
+    if preset is not None:
+        sim_config = preset.solver_config()
+        material, config = sim_config.resolve_material(garment), sim_config.solver
+    model = ClothModel.concatenate([ClothModel.from_garment(garment, material, device=device)] * n)
     collider = BodyCollider.from_static(body.v_template, body.faces, num_instances=n, device=device)
-    solver = ImplicitSolver(model, SolverConfig(projection_offset=2.0e-4,
-                                                self_contact=SelfContactParams() if self_contact else None))
+    solver = ImplicitSolver(model, config)
     state = model.state()
     dt = 1.0 / (fps * substeps)
 
@@ -154,6 +159,9 @@ def main() -> None:
     parser.add_argument("--substeps", type=int, default=10)
     parser.add_argument("--fps", type=float, default=30.0)
     parser.add_argument("--self-contact", choices=["off", "on", "both"], default="off")
+    parser.add_argument("--preset", default=None,
+                        help="a dataset spec's garment, material and solver settings (preset name or TOML path; "
+                             "--substeps and --self-contact then come from the spec)")
     parser.add_argument("--out", type=Path, default=None)
     args = parser.parse_args()
 
@@ -163,16 +171,24 @@ def main() -> None:
     wp.config.quiet = True
     wp.init()
     device = args.device or str(wp.get_preferred_device())
+    preset = None
+    if args.preset is not None:
+        from simgen.dataset import load_spec
+
+        preset = load_spec(args.preset)
+        args.garment, args.substeps, args.fps = preset.garments[0], preset.substeps, preset.fps
+        args.self_contact = "on" if preset.self_contact else "off"
     body = load("open")
     garment = load_garment(args.garment, body=body)
     modes = {"off": [False], "on": [True], "both": [False, True]}[args.self_contact]
     result = {"benchmark": "solver_profile", "device": wp.get_device(device).name, "commit": commit(),
               "warp": wp.__version__, "garment": {"name": garment.name, "vertices": garment.num_vertices},
+              "preset": args.preset,
               "runs": []}
     for n in args.batches:
         for sc in modes:
             row = profile(garment, body, n, device=device, frames=args.frames, substeps=args.substeps,
-                          fps=args.fps, self_contact=sc)
+                          fps=args.fps, self_contact=sc, preset=preset)
             result["runs"].append(row)
             summary = {k: row[k] for k in ("instances", "self_contact", "kernel_ms_per_frame", "launches_per_frame",
                                            "eager_ms_per_frame", "graph_ms_per_frame", "cg_per_newton",
