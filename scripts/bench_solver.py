@@ -127,6 +127,8 @@ def run_motion(garment, body, motion: str, n: int, *, device: str, frames: int, 
         "max_inside_regular": max(int((r.stats["inside_count"] - r.stats["self_intersection_count"]).max())
                                   for r in ok),
         "retries": int(sum(r.metadata["retries"] for r in ok)),
+        # Instance-frames kept although they still failed the guard after the last retry.
+        "unresolved": int(sum(int(np.sum(r.stats["unresolved"])) for r in ok)),
     }
     if memory["built"] is not None and memory["before"] is not None:
         row["gpu_memory_mb"] = memory["built"] - memory["before"]
