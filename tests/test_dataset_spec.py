@@ -68,6 +68,7 @@ def test_tiny_is_small():
     (minimal(solver={"contact_stiffness": 0.0}), "solver.contact_stiffness"),
     (minimal(solver={"constraint_rounds": 0}), "solver.constraint_rounds"),
     (minimal(solver={"limiter_half_space": 1}), "solver.limiter_half_space"),
+    (minimal(solver={"guard_energy": "off"}), "solver.guard_energy"),
     (minimal(solver={"substep": 4}), "solver.substep"),
     (minimal(protocol={"ramp_frames": 0}), "protocol.ramp_frames"),
     (minimal(protocol={"store_rest_frames": "yes"}), "protocol.store_rest_frames"),

@@ -467,6 +467,44 @@ def test_guard_retries_diverging_step_at_half_dt():
     assert solver.stats["retries"] == 0
 
 
+def test_guard_energy_test_can_be_turned_off():
+    """guard_energy=False drops only the guard's energy test. The squeezed square's overshooting step
+    (finite, speed test disabled here) is retried by the energy test and kept without it; a
+    non-finite state still fails; and where the guard does not fire the two settings step
+    identically (the skipped energy passes do not touch the state)."""
+    def overshoot(guard_energy):
+        model, state = compressed_square()
+        solver = ImplicitSolver(model, SolverConfig(max_retries=4, line_search=False, friction=None,
+                                                    max_speed=1.0e9, guard_energy=guard_energy))
+        solver.step(state, state, None, 1.0e-2)
+        return solver.stats["retries"], state.positions.numpy()
+
+    retries_on, _ = overshoot(True)
+    retries_off, x_off = overshoot(False)
+    assert retries_on >= 1 and retries_off == 0 and np.all(np.isfinite(x_off))
+
+    v, f = grid(5, 5, 0.1, 0.1)
+    model = ClothModel.from_mesh(v, f, "cotton", device=DEVICE, dtype=wp.float32)
+    solver = ImplicitSolver(model, SolverConfig(max_retries=2, guard_energy=False))
+    state = model.state()
+    x = state.positions.numpy()
+    x[7] = np.nan
+    state.positions.assign(x)
+    with pytest.raises(SolverDivergedError):
+        solver.step(state, model.state(), None, 1.0 / 100.0)
+
+    def drape(guard_energy):
+        model = ClothModel.from_mesh(v, f, "cotton", pinned=[0, 4], device=DEVICE, dtype=wp.float32)
+        solver = ImplicitSolver(model, SolverConfig(newton_iterations=2, guard_energy=guard_energy))
+        state = model.state()
+        for _ in range(5):
+            solver.step(state, state, None, 1.0 / 300.0)
+        assert solver.stats["retries"] == 0
+        return state.positions.numpy()
+
+    assert np.array_equal(drape(True), drape(False))
+
+
 def test_guard_retries_and_raises_on_corrupted_state():
     v, f = grid(5, 5, 0.1, 0.1)
     model = ClothModel.from_mesh(v, f, "cotton", device=DEVICE, dtype=wp.float32)

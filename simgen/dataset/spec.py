@@ -101,6 +101,7 @@ SOLVER_FIELDS: dict[str, tuple[type, float | None, bool]] = {
     "project": (bool, None, True),
     "projection_offset": (float, 0.0, True),
     "guard": (bool, None, True),
+    "guard_energy": (bool, None, True),
     "max_retries": (int, 0, True),
     "max_speed": (float, 0.0, False),
     "divergence_ratio": (float, 0.0, False),
