@@ -25,7 +25,8 @@ others, and every launch returns at once when all instances are done.
 Per iteration, three launches: (1) p = z + beta p and q = H p computed as H z + beta q (q holds
 H p of the previous iteration, so no separate pass updates p before the product), fused with the
 per-instance reduction p.q, (2) x += alpha p, r -= alpha q, z = M^-1 r fused with r.z, (3) one
-thread: each instance's beta and convergence test, the iteration count and the all-done flag.
+block, a thread per instance: each instance's beta and convergence test, then (a tile sum of the
+instances still running) the iteration count and the all-done flag.
 The recurrence for q is exact in exact arithmetic (H is linear); in float32 it drifts from H p by
 round-off only, far below the 1e-3 tolerance the solver uses. Reductions are segmented block
 reductions (simgen.sim.energies._common.reduce_funcs): a block of ``REDUCE_BLOCK`` vertices sums
@@ -254,15 +255,18 @@ def pcg_kernels(scalar) -> SimpleNamespace:
         all_done: wp.array(dtype=wp.int32),
         running: wp.array(dtype=wp.int32),
     ):
-        # One thread: each instance's CG runs and stops on its own residual; iterations = the most
-        # any instance ran; all_done lets every later launch return at once; running (the loop's
-        # condition) also stops at max_iterations.
+        # One block, a thread per instance (strided): each instance's CG runs and stops on its own
+        # residual; iterations = the most any instance ran; all_done lets every later launch return
+        # at once; running (the loop's condition) also stops at max_iterations. One thread looping
+        # over the instances waited on a chain of dependent loads per instance (BENCHMARKS.md).
+        block, lane = wp.tid()
         if all_done[0] != 0:
-            running[0] = 0
-            return
-        iterations[0] = iterations[0] + 1
-        flag = int(1)
-        for k in range(num_instances):
+            if lane == 0:
+                running[0] = 0
+            return  # uniform over the block, so no thread misses the tile sum below
+        active = int(0)
+        k = lane
+        while k < num_instances:
             if done[k] == 0:
                 # A non-positive (or non-finite) curvature p.Hp means H is not SPD along p (should
                 # not happen with PSD-projected terms plus the mass); stop rather than divide by it.
@@ -276,11 +280,19 @@ def pcg_kernels(scalar) -> SimpleNamespace:
                 pq[k] = zero
                 rz_new[k] = zero
                 if done[k] == 0:
-                    flag = 0
-        all_done[0] = flag
-        running[0] = 0
-        if flag == 0 and iterations[0] < max_iterations:
-            running[0] = 1
+                    active += 1
+            k += wp.block_dim()
+        left = wp.tile_sum(wp.tile(active))
+        if lane == 0:
+            count = iterations[0] + 1
+            iterations[0] = count
+            flag = int(0)
+            if left[0] == 0:
+                flag = 1
+            all_done[0] = flag
+            running[0] = 0
+            if flag == 0 and count < max_iterations:
+                running[0] = 1
 
     return SimpleNamespace(constrain=constrain, gather_ell=gather_ell, setup=setup, start=start, start_all=start_all,
                            direction_spmv_dot=direction_spmv_dot, update_xr=update_xr, control=control)
@@ -331,6 +343,7 @@ class BlockJacobiPCG:
         self._running = wp.zeros(1, dtype=wp.int32, device=dev)
         self._block = reduce_block(dev)
         self._blocks = (n + self._block - 1) // self._block
+        self._control_block = _control_block(dev, ni)
         pattern = model.pattern
         slice_starts, slice_widths, ell_columns, ell_source = sliced_ell_layout(pattern.offsets, pattern.columns)
         self.slice_starts = wp.array(slice_starts, dtype=wp.int32, device=dev)
@@ -388,7 +401,7 @@ class BlockJacobiPCG:
         wp.launch_tiled(k.update_xr, dim=[self._blocks], block_dim=self._block, device=dev, inputs=[
             vi, self.p, self.q, self.inv_diag, self._rz, self._pq, x, self.r, self.z, self._rz_new, self._done,
             self._all_done, n])
-        wp.launch(k.control, dim=1, device=dev, inputs=[
+        wp.launch_tiled(k.control, dim=[1], block_dim=self._control_block, device=dev, inputs=[
             self._rz, self._rz0, self._pq, self._rz_new, self._beta, self.tolerance * self.tolerance,
             m.num_instances, self.max_iterations, self._done, self._iterations, self._all_done, self._running])
 
@@ -406,6 +419,15 @@ class BlockJacobiPCG:
         rz, rz0 = self._rz.numpy().astype(float), self._rz0.numpy().astype(float)
         ratios = [(max(a, 0.0) / b) ** 0.5 if b > 0 else 0.0 for a, b in zip(rz, rz0)]
         return max(ratios)
+
+
+def _control_block(device, num_instances: int) -> int:
+    """Threads of the one-block PCG control launch: on CUDA whole warps up to one per instance
+    (at most 256; more instances are strided); on the CPU up to 4, so the CPU tests run the
+    strided, multi-thread path too."""
+    if wp.get_device(device).is_cuda:
+        return int(min(256, 32 * ((num_instances + 31) // 32)))
+    return int(min(4, max(1, num_instances)))
 
 
 def sliced_ell_layout(offsets: np.ndarray, columns: np.ndarray) -> tuple[np.ndarray, ...]:
