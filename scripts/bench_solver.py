@@ -106,8 +106,8 @@ def run_motion(garment, body, motion: str, n: int, *, device: str, frames: int, 
     per_substep = lambda key: float(np.mean(r0.stats[key][1:])) / substeps
     protocol_frames = len(r0.protocol_positions)
     row = {
-        "mode": "motion", "motion": motion, "preset": preset.name if preset is not None else None, "instances": n, "self_contact": self_contact, "frames": frames,
-        "substeps": substeps,
+        "mode": "motion", "motion": motion, "preset": preset.name if preset is not None else None,
+        "instances": n, "self_contact": self_contact, "frames": frames, "substeps": substeps,
         "cuda_graph": bool(cuda_graph and wp.get_device(device).is_cuda),
         "ms_per_frame_median": median,
         "ms_per_frame_p90": float(np.percentile(step, 90)) * 1e3,

@@ -17,8 +17,9 @@ own velocity) and are removed from the linear system.
 
 Guard: after each step the solver checks (one host read) for non-finite positions, a vertex speed
 above ``max_speed`` or (``guard_energy``) an increase of E beyond ``divergence_ratio`` times the
-decrease the first Newton model predicted (plus a round-off allowance). A failed step is redone as two half steps,
-recursively, up to ``max_retries`` levels; retries are counted in :attr:`ImplicitSolver.stats`.
+decrease the first Newton model predicted (plus a round-off allowance). A failed step is redone as
+two half steps, recursively, up to ``max_retries`` levels; retries are counted in
+:attr:`ImplicitSolver.stats`.
 
 After each substep, an optional projection (:meth:`BodyCollider.project`) moves any vertex found
 inside its body onto the surface and removes its inward normal velocity, so no output vertex is
@@ -110,10 +111,10 @@ class SolverConfig:
       rise at most this many times the first Newton model's predicted decrease.
     guard_energy: the guard's energy test (True, default). False keeps only its non-finite and
       max_speed tests and skips the energy passes the test needs (the first assembly's energy and
-      one energy evaluation after each step). Where a fast limb first meets the cloth the stiff
-      cubic contact penalty makes E rise within a step that is otherwise sound (the projection then
-      resolves the contact), and the test redoes such frames at up to 2^max_retries finer steps:
-      the thesis presets turn it off (BENCHMARKS.md, 2026-11-25).
+      one energy evaluation after each step). With a stiff contact penalty E can rise within a step
+      that stays finite and slow (the projection then resolves the contact), and the test redoes
+      such steps at up to 2^max_retries finer ones: on the T-shirt every retry came from it, so the
+      thesis presets turn it off (BENCHMARKS.md, 2026-11-25).
     """
 
     newton_iterations: int = 1
