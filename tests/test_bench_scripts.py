@@ -1,0 +1,66 @@
+"""The benchmark scripts in scripts/ run end to end at tiny sizes on the CPU and print the JSON the
+device runs rely on (BENCHMARKS.md quotes these fields). Timings are not asserted."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def run_script(name: str, *args: str, out: Path) -> dict:
+    env = {**os.environ, "PYTHONPATH": str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    proc = subprocess.run([sys.executable, str(REPO / "scripts" / name), *args, "--out", str(out)],
+                          capture_output=True, text=True, env=env, timeout=900)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    return json.loads(out.read_text())
+
+
+def test_bench_solver_with_a_preset_steps_with_the_specs_settings(tmp_path):
+    from simgen.dataset import load_spec
+
+    spec = load_spec("tiny")
+    result = run_script("bench_solver.py", "--device", "cpu", "--preset", "tiny", "--batches", "2",
+                        "--frames", "2", "--modes", "motion", out=tmp_path / "bench.json")
+    assert result["preset"] == "tiny" and result["garment"]["name"] == spec.garments[0]
+    assert result["substeps_per_frame"] == spec.substeps
+    (row,) = result["runs"]
+    assert row["mode"] == "motion" and row["preset"] == "tiny" and row["instances"] == 2
+    assert row["newton_iterations"] == spec.solver_config().solver.newton_iterations
+    assert row["finite"] and row["failed_instances"] == 0
+    assert row["unresolved"] >= 0 and row["retries"] >= 0 and row["ms_per_frame_median"] > 0
+
+
+def test_profile_solver_with_a_preset(tmp_path):
+    result = run_script("profile_solver.py", "--device", "cpu", "--preset", "tiny", "--batches", "1",
+                        "--frames", "1", out=tmp_path / "profile.json")
+    assert result["preset"] == "tiny" and result["garment"]["name"] == "tshirt_1k"
+    (row,) = result["runs"]
+    assert row["instances"] == 1 and row["cg_per_newton"] >= 1 and row["eager_ms_per_frame"] > 0
+
+
+@pytest.mark.parametrize("overlap", [True, False])
+def test_dataset_bench_reports_rates_split_and_retries(tmp_path, overlap):
+    sys.path.insert(0, str(REPO / "scripts"))
+    try:
+        import dataset_bench
+    finally:
+        sys.path.remove(str(REPO / "scripts"))
+    out = tmp_path / "bench.json"
+    args = ["--spec", "tiny", "--device", "cpu", "--json", str(out), "--max-sequences", "2"]
+    assert dataset_bench.main(args + ([] if overlap else ["--no-overlap-writes"])) == 0
+    r = json.loads(out.read_text())
+    assert r["spec"] == "tiny" and r["sizes"]["sequences_written_now"] == 2
+    assert r["sizes"]["overlap_writes"] is overlap
+    assert r["cloth_frames"] > 0 and r["cloth_frames_per_s"] > 0
+    split = r["time_split_s"]
+    assert split["solver_steps"] > 0 and split["write"] > 0
+    assert split["write_hidden"] >= 0 and (overlap or split["write_hidden"] < 1e-6)
+    assert r["retries"] == {"jobs": 0, "cloth_frames": 0, "simulate_s": 0.0}
+    assert r["thesis_tshirt_plan"]["sequences"] == 340 and r["projected_thesis_s"] > 0
