@@ -422,11 +422,12 @@ class BlockJacobiPCG:
 
 
 def _control_block(device, num_instances: int) -> int:
-    """Threads of the one-block PCG control launch: on CUDA whole warps up to one per instance
-    (at most 256; more instances are strided); on the CPU up to 4, so the CPU tests run the
-    strided, multi-thread path too."""
+    """Threads of the one-block PCG control launch (more instances are strided). On CUDA the
+    reducing kernels' block size: Warp compiles a module once per block size, so this launch needs
+    no second variant (which would have to be loaded before a CUDA graph is captured). On the CPU up
+    to 4, so the CPU tests run the strided, multi-thread path too."""
     if wp.get_device(device).is_cuda:
-        return int(min(256, 32 * ((num_instances + 31) // 32)))
+        return reduce_block(device)
     return int(min(4, max(1, num_instances)))
 
 
