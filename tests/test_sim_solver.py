@@ -54,16 +54,21 @@ def free_gradient_norm(model, x):
 
 # -- linear solver --------------------------------------------------------------------------------
 
+def cloth_hessian(model, x):
+    """The Newton Hessian of membrane, bending and inertia (h = 10 ms) at positions x."""
+    H = model.new_hessian()
+    eval_membrane(model, x, hessian=H)
+    eval_bending(model, x, hessian=H)
+    eval_inertia(model, x, x, 1.0e-2, hessian=H)
+    return H
+
+
 def test_block_jacobi_pcg_matches_dense_solve_with_pins():
     v, f = grid(6, 6, 0.1, 0.1)
     v = v + 0.01 * np.random.default_rng(0).normal(size=v.shape)
     pinned = [0, 5]
     model = ClothModel.from_mesh(v, f, "cotton", pinned=pinned, device=DEVICE, dtype=wp.float64)
-    x = wp.array(v, dtype=wp.vec3d, device=DEVICE)
-    H = model.new_hessian()
-    eval_membrane(model, x, hessian=H)
-    eval_bending(model, x, hessian=H)
-    eval_inertia(model, x, x, 1.0e-2, hessian=H)
+    H = cloth_hessian(model, wp.array(v, dtype=wp.vec3d, device=DEVICE))
     pcg = BlockJacobiPCG(model, max_iterations=300, tolerance=1e-12)
     pcg.apply_constraints(H)
     b = np.random.default_rng(1).normal(size=v.shape)
@@ -136,11 +141,7 @@ def test_batched_pcg_instances_converge_on_their_own_as_if_alone():
         for i in parts:
             builder.add_instance(*meshes[i], "cotton", pinned=[0])
         model = builder.finalize(DEVICE, dtype=wp.float64)
-        x = wp.array(model.host.rest_positions, dtype=wp.vec3d, device=DEVICE)
-        H = model.new_hessian()
-        eval_membrane(model, x, hessian=H)
-        eval_bending(model, x, hessian=H)
-        eval_inertia(model, x, x, 1.0e-2, hessian=H)
+        H = cloth_hessian(model, wp.array(model.host.rest_positions, dtype=wp.vec3d, device=DEVICE))
         pcg = BlockJacobiPCG(model, max_iterations=400, tolerance=1e-10)
         pcg.apply_constraints(H)
         out = model.new_gradient()
