@@ -185,5 +185,9 @@ def test_alternating_limiter_and_projection_approaches_both_constraints():
 def test_bad_strain_limit_is_refused(bad):
     with pytest.raises(InputError, match="strain_limit"):
         SolverConfig(strain_limit=bad)
+
+
+@pytest.mark.parametrize("bad", [0, -1, 1.5, True])
+def test_bad_constraint_rounds_is_refused(bad):
     with pytest.raises(InputError, match="constraint_rounds"):
-        SolverConfig(constraint_rounds=0)
+        SolverConfig(constraint_rounds=bad)

@@ -10,7 +10,8 @@ One store per garment (DESIGN.md). For each store the driver:
    write phase of a batch runs in a background thread while the next batch simulates
    (``execution.overlap_writes``, :class:`_LocalExecutor`); results are entered in batch order;
 4. enters every outcome into the manifest (rewritten atomically after each batch) and re-queues a
-   failed job (diverged) into a later batch with the substep halved, up to ``max_attempts``.
+   failed job (diverged, or a sequence with a strain outlier: ``execution.retry_strain_outliers``)
+   into a later batch with the substep halved, up to ``max_attempts``.
 
 ``max_sequences`` and ``time_budget`` make a run do a part of the plan (the store stays resumable:
 the next run continues). With ``ray`` the batches become Ray tasks (:mod:`simgen.dataset.distributed`).
