@@ -141,7 +141,7 @@ def run_static(garment, body, n: int, *, device: str, frames: int, substeps: int
     from simgen.sim import BodyCollider, ClothModel, ImplicitSolver
 
     before = used_memory_mb(device)
-    model = ClothModel.concatenate([ClothModel.from_garment(garment, device=device)] * n)
+    model = ClothModel.concatenate([ClothModel.from_garment(garment, body=body, device=device)] * n)
     collider = BodyCollider.from_static(body.v_template, body.faces, num_instances=n, device=device)
     solver = ImplicitSolver(model, solver_config(self_contact))
     state = model.state()

@@ -63,7 +63,7 @@ def profile(garment, body, n: int, *, device: str, frames: int, substeps: int, f
     if preset is not None:
         sim_config = preset.solver_config()
         material, config = sim_config.resolve_material(garment), sim_config.solver
-    model = ClothModel.concatenate([ClothModel.from_garment(garment, material, device=device)] * n)
+    model = ClothModel.concatenate([ClothModel.from_garment(garment, material, body=body, device=device)] * n)
     collider = BodyCollider.from_static(body.v_template, body.faces, num_instances=n, device=device)
     solver = ImplicitSolver(model, config)
     state = model.state()

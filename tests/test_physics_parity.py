@@ -48,7 +48,7 @@ def deformed(garment, scene, seed):
     from simgen.garment import lbs
 
     x = lbs(garment.vertices, garment.skin_weights, scene["transforms"])[0]
-    model = ClothModel.from_garment(garment, device="cpu", dtype=wp.float64)
+    model = ClothModel.from_garment(garment, body=scene["body"], device="cpu", dtype=wp.float64)
     frame = ContactFrame(model)
     update_contact_frame(model, wp.array(x, dtype=wp.vec3d, device="cpu"), scene["collider"].mesh_ids,
                          ContactParams(query_distance=0.5), frame)
@@ -90,7 +90,8 @@ def test_terms_equal_warp_energies(name, bending_rest, scene):
 
     garment = load_garment(name, body=scene["body"])
     x, _ = deformed(garment, scene, seed=GARMENTS.index(name))
-    model = ClothModel.from_garment(garment, device="cpu", dtype=wp.float64, bending_rest=bending_rest)
+    model = ClothModel.from_garment(garment, body=scene["body"], device="cpu", dtype=wp.float64,
+                                   bending_rest=bending_rest)
     rest = ClothRest.from_garment(garment, bending_rest=bending_rest, dtype=torch.float64)
     # Independently computed rest data equals the model's.
     np.testing.assert_allclose(rest.vertex_mass.numpy(), model.host.vertex_mass, rtol=1e-12)

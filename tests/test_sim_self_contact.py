@@ -74,7 +74,7 @@ def drop(model, config, steps=60, h=1.0 / 300.0):
 def test_falling_sheet_rests_on_pinned_sheet_of_its_own_instance_only():
     (lv, lf), (uv, uf) = stacked_sheets(gap=4.0e-3)
     n_low = len(lv)
-    contact = SolverConfig(self_contact=PARAMS, friction=None)
+    contact = SolverConfig(self_contact=PARAMS, friction=None, floor=None)
 
     one = ClothModel.from_mesh(np.vstack([lv, uv]), np.vstack([lf, uf + n_low]), "cotton", device="cpu",
                                pinned=np.arange(n_low))
@@ -85,7 +85,7 @@ def test_falling_sheet_rests_on_pinned_sheet_of_its_own_instance_only():
     assert upper_y.min() > 0.0
     assert upper_y.max() < PARAMS.thickness + 1.0e-3
 
-    x_off, _ = drop(one, SolverConfig(friction=None))
+    x_off, _ = drop(one, SolverConfig(friction=None, floor=None))
     assert x_off[n_low:, 1].max() < -0.01  # without self-contact it falls through
 
     builder = ClothModelBuilder()

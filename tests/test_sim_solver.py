@@ -210,7 +210,7 @@ def test_free_fall_matches_backward_euler_closed_form():
     v, f = grid(6, 6, 0.2, 0.2)
     model = ClothModel.from_mesh(v, f, "cotton", device=DEVICE, dtype=wp.float64)
     v0 = np.array([0.3, 1.0, -0.2])
-    cfg = SolverConfig(cg_iterations=100, cg_tolerance=1e-12)
+    cfg = SolverConfig(cg_iterations=100, cg_tolerance=1e-12, floor=None)
     errors = []
     for h, n in ((0.02, 10), (0.01, 20)):
         state = model.state()
@@ -241,7 +241,7 @@ def hanging_strip(material, *, width=0.02, length=0.2, nu=3, nv=41):
     return ClothModel.from_mesh(v, f, material, pinned=pinned, device=DEVICE, dtype=wp.float64), v
 
 
-STATIC = SolverConfig(newton_iterations=30, newton_tolerance=1e-13, cg_iterations=400, cg_tolerance=1e-12,
+STATIC = SolverConfig(newton_iterations=30, newton_tolerance=1e-13, cg_iterations=400, cg_tolerance=1e-12, floor=None,
                       line_search=True, friction=None)
 
 
@@ -302,7 +302,7 @@ def test_static_relaxation_gradient_vanishes_and_stays():
           f"{solver.stats['newton_iterations']} Newton iterations")
     assert gnorm < 1e-6 * load
     state.velocities.zero_()
-    dynamic = ImplicitSolver(model, SolverConfig(newton_iterations=3, cg_iterations=400, cg_tolerance=1e-12,
+    dynamic = ImplicitSolver(model, SolverConfig(newton_iterations=3, cg_iterations=400, cg_tolerance=1e-12, floor=None,
                                                  friction=None))
     for _ in range(10):
         dynamic.step(state, state, None, 1.0 / 100.0)
@@ -330,7 +330,7 @@ def test_drape_on_sphere_settles_symmetric_without_penetration():
     model = ClothModel.from_mesh(v, f, "cotton", device=DEVICE, dtype=wp.float32)
     # Uncapped Coulomb friction: the sphere's top carries ~200x its vertices' weight, and the test is
     # of the physics, not of the cap that guards against body self-pinches (FrictionParams doc).
-    solver = ImplicitSolver(model, SolverConfig(newton_iterations=1, cg_iterations=60,
+    solver = ImplicitSolver(model, SolverConfig(newton_iterations=1, cg_iterations=60, floor=None,
                                                 friction=FrictionParams(max_normal_load=math.inf)))
     state = model.state()
     for _ in range(150):
@@ -451,7 +451,7 @@ def test_time_step_convergence_is_first_order():
     v, f = grid(6, 6, 0.1, 0.1, center=False)
     pinned = [0, 5]
     model = ClothModel.from_mesh(v, f, "cotton", pinned=pinned, device=DEVICE, dtype=wp.float64)
-    cfg = SolverConfig(newton_iterations=4, newton_tolerance=1e-9, cg_iterations=200, cg_tolerance=1e-10,
+    cfg = SolverConfig(newton_iterations=4, newton_tolerance=1e-9, cg_iterations=200, cg_tolerance=1e-10, floor=None,
                        friction=None)
     solver = ImplicitSolver(model, cfg)
     total = 0.1

@@ -104,7 +104,7 @@ def test_solver_strain_limit_bounds_a_hanging_strip():
     def hang(limit, iterations=8):
         model = ClothModel.from_mesh(rest, faces, "silk", pinned=top, device=DEVICE, dtype=wp.float64)
         gravity = GravityParams(gravity=(0.0, -981.0, 0.0))
-        solver = ImplicitSolver(model, SolverConfig(strain_limit=limit, strain_limit_iterations=iterations,
+        solver = ImplicitSolver(model, SolverConfig(strain_limit=limit, strain_limit_iterations=iterations, floor=None,
                                                     gravity=gravity, friction=None,
                                                     newton_iterations=2, cg_iterations=200, cg_tolerance=1e-8))
         state = model.state()

@@ -82,6 +82,7 @@ def build_garment(name: str, body=None, *, target_triangles: int | None = None, 
     from simgen.garment.check import check_garment
     from simgen.garment.garment import Garment
     from simgen.garment.skinning import SKINNING_METHODS, compute_skin_weights
+    from simgen.garment.waistband import WAISTBANDS, waistband_metadata
 
     if body is None:
         from simgen.body import load
@@ -114,6 +115,8 @@ def build_garment(name: str, body=None, *, target_triangles: int | None = None, 
         "skinning": {"method": method, "seed": int(seed)},
     }
     garment = Garment(garment_name, vertices, faces, weights, metadata)
+    if name in WAISTBANDS:
+        garment.metadata["waistband"] = waistband_metadata(WAISTBANDS[name])
     report = check_garment(garment, body, template=name)
     garment.metadata["quality"] = report.to_dict()
     if strict and not report.passed:

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from types import SimpleNamespace
+from typing import TYPE_CHECKING
 
 import numpy as np
 import warp as wp
@@ -31,6 +32,9 @@ from simgen.errors import InputError
 from simgen.sim.energies._common import check_scalar, scalar_types
 from simgen.sim.materials import Material, get_material
 from simgen.sim.topology import BsrPattern, build_bsr_pattern, extract_hinges
+
+if TYPE_CHECKING:
+    from simgen.garment.waistband import Attachment
 
 __all__ = ["ClothModel", "ClothModelBuilder", "ClothState", "InstanceSpec", "BENDING_REST_MODES"]
 
@@ -73,6 +77,7 @@ class InstanceSpec:
     material: its :class:`Material`. pinned, bool shape (V,). bending_rest: "template" or "flat".
     body_part: int shape (V,), each vertex's home body part (index into
     :data:`simgen.body.parts.BODY_PARTS`), or None (the body contact's part rule stays off).
+    attachment: vertices tied to the body surface (:class:`simgen.garment.waistband.Attachment`), or None.
     """
 
     name: str
@@ -84,6 +89,7 @@ class InstanceSpec:
     pinned: np.ndarray
     bending_rest: str
     body_part: np.ndarray | None = None
+    attachment: Attachment | None = None
 
 
 @dataclass
@@ -119,7 +125,8 @@ class ClothModelBuilder:
         return len(self.instances)
 
     def add_instance(self, vertices, faces, material: Material | str = "cotton", *, pinned=None,
-                     bending_rest: str = "template", body_part=None, name: str | None = None) -> int:
+                     bending_rest: str = "template", body_part=None, attachment: Attachment | None = None,
+                     name: str | None = None) -> int:
         """Add one cloth instance; returns its index.
 
         vertices [m], shape (V, 3): rest shape (the 3D template; its triangles define the rest
@@ -132,6 +139,8 @@ class ClothModelBuilder:
         body_part: optional int shape (V,), each vertex's home body part for contact where the body
           intersects itself (:func:`simgen.body.parts.vertex_parts` of the garment's skinning
           weights; :mod:`simgen.sim.energies.contact`); None leaves that rule off.
+        attachment: optional :class:`~simgen.garment.waistband.Attachment`: vertices tied to points
+          of the body surface by springs (:mod:`simgen.sim.energies.attachment`).
         name: label for reports (default "instance<k>").
         """
         k = len(self.instances)
@@ -182,16 +191,22 @@ class ClothModelBuilder:
                 raise InputError(f"{where}: body_part must be {len(vertices)} integers in [0, {len(BODY_PARTS)})")
             body_part = body_part.astype(np.int32)
         _triangle_rest_frames(vertices, faces)  # validates the rest shape now, naming the instance
+        if attachment is not None and len(attachment.vertices) and (
+                attachment.vertices.min() < 0 or attachment.vertices.max() >= len(vertices)):
+            raise InputError(f"{where}: attachment vertex {int(attachment.vertices.max())} out of range "
+                             f"for {len(vertices)} vertices")
         hinges, hinge_faces = extract_hinges(faces)
         self.instances.append(InstanceSpec(
             name=name or f"instance{k}", vertices=vertices.copy(), faces=faces, hinges=hinges,
-            hinge_faces=hinge_faces, material=material, pinned=mask, bending_rest=bending_rest, body_part=body_part))
+            hinge_faces=hinge_faces, material=material, pinned=mask, bending_rest=bending_rest, body_part=body_part,
+            attachment=attachment))
         return k
 
     def add_spec(self, spec: InstanceSpec) -> int:
         """Add an instance described by an :class:`InstanceSpec` (e.g. taken from another model)."""
         return self.add_instance(spec.vertices, spec.faces, spec.material, pinned=spec.pinned,
-                                 bending_rest=spec.bending_rest, body_part=spec.body_part, name=spec.name)
+                                 bending_rest=spec.bending_rest, body_part=spec.body_part,
+                                 attachment=spec.attachment, name=spec.name)
 
     def finalize(self, device=None, *, dtype=wp.float32) -> ClothModel:
         """Build the concatenated model on ``device`` (default: Warp's default device).
@@ -222,6 +237,9 @@ class ClothModel:
     - hinges, int32 (E, 4): (x0, x1, x2, x3), edge x0-x1, wings x2 (face A) and x3 (face B);
       hinge_stiffness [J], (E,): k_bend * l^2 / (4 (a1 + a2)) with rest edge length l and rest
       areas a1, a2; hinge_rest_angle [rad], (E,); hinge_damping [s], (E,); hinge_instance, int32 (E,).
+    - attach_vertex, attach_face, int32 (A,); attach_bary (A,) vec3; attach_offset [m] (A,) vec3;
+      attach_stiffness [N/m] (A,): the attached vertices (num_attachments, A) and their points on
+      the body (:mod:`simgen.sim.energies.attachment`).
     - Hessian pattern (3x3 blocks, see :class:`simgen.sim.topology.BsrPattern`): bsr_offsets (V+1,),
       bsr_columns (nnz,), bsr_rows (nnz,), diag_slots (V,), tri_slots (F, 9), hinge_slots (E, 16),
       all int32.
@@ -239,28 +257,40 @@ class ClothModel:
 
     @classmethod
     def from_mesh(cls, vertices, faces, material: Material | str, *, pinned=None, bending_rest: str = "template",
-                  body_part=None, device=None, dtype=wp.float32, name: str | None = None) -> ClothModel:
+                  body_part=None, attachment: Attachment | None = None, device=None, dtype=wp.float32,
+                  name: str | None = None) -> ClothModel:
         """A one-instance model from a triangle mesh (arguments as in :meth:`ClothModelBuilder.add_instance`)."""
         builder = ClothModelBuilder()
         builder.add_instance(vertices, faces, material, pinned=pinned, bending_rest=bending_rest,
-                             body_part=body_part, name=name)
+                             body_part=body_part, attachment=attachment, name=name)
         return builder.finalize(device, dtype=dtype)
 
     @classmethod
-    def from_garment(cls, garment, material: Material | str | None = None, *, pinned=None,
+    def from_garment(cls, garment, material: Material | str | None = None, *, body=None, pinned=None,
                      bending_rest: str = "template", device=None, dtype=wp.float32) -> ClothModel:
         """A one-instance model from a :class:`simgen.garment.Garment` (its template is the rest shape).
 
         material: default ``garment.metadata['default_material']``, else cotton. Each vertex's home
-        body part comes from the garment's skinning weights.
+        body part comes from the garment's skinning weights. body: the body model the garment was
+        made on, needed when the garment has a waistband (tied to that body's surface,
+        :mod:`simgen.garment.waistband`).
         """
         from simgen.body.parts import vertex_parts
+        from simgen.garment.waistband import band_vertices, waistband_attachment
 
         if material is None:
             material = (garment.metadata or {}).get("default_material") or "cotton"
+        material = get_material(material)
+        attachment = None
+        if len(band_vertices(garment)):
+            if body is None:
+                raise InputError(f"garment {garment.name!r} has a waistband: building its model needs the body "
+                                 "it is tied to")
+            _, area = _triangle_rest_frames(np.asarray(garment.vertices, dtype=np.float64), garment.faces)
+            attachment = waistband_attachment(garment, body, float(area.sum()) * material.area_density)
         return cls.from_mesh(garment.vertices, garment.faces, material, pinned=pinned,
                              bending_rest=bending_rest, body_part=vertex_parts(garment.skin_weights),
-                             device=device, dtype=dtype, name=garment.name)
+                             attachment=attachment, device=device, dtype=dtype, name=garment.name)
 
     @classmethod
     def concatenate(cls, models, *, device=None, dtype=None) -> ClothModel:
@@ -330,6 +360,14 @@ class ClothModel:
         body_part = np.concatenate([s.body_part if s.body_part is not None else np.full(len(s.vertices), -1, np.int32)
                                     for s in instances])
         self.has_body_parts = any(s.body_part is not None for s in instances)
+        attached = [(s.attachment, off) for s, off in zip(instances, self.vertex_start) if s.attachment is not None]
+        attach = SimpleNamespace(
+            vertex=np.concatenate([a.vertices + off for a, off in attached] + [np.zeros(0, np.int64)]),
+            face=np.concatenate([a.body_faces for a, _ in attached] + [np.zeros(0, np.int64)]),
+            bary=np.concatenate([a.bary for a, _ in attached] + [np.zeros((0, 3))]),
+            offset=np.concatenate([a.offset for a, _ in attached] + [np.zeros((0, 3))]),
+            stiffness=np.concatenate([a.stiffness for a, _ in attached] + [np.zeros(0)]))
+        self.num_attachments = len(attach.vertex)
 
         self.pattern: BsrPattern = build_bsr_pattern(len(rest), faces, hinges)
         self.host = SimpleNamespace(
@@ -339,6 +377,8 @@ class ClothModel:
             tri_damping=tri_damping, tri_instance=tri_instance,
             hinges=hinges, hinge_faces=hinge_faces, hinge_stiffness=hinge_stiffness,
             hinge_rest_angle=rest_angle, hinge_damping=hinge_damping, hinge_instance=hinge_instance,
+            attach_vertex=attach.vertex, attach_face=attach.face, attach_bary=attach.bary,
+            attach_offset=attach.offset, attach_stiffness=attach.stiffness,
         )
 
         dev = self.device
@@ -369,6 +409,11 @@ class ClothModel:
         self.hinge_rest_angle = farr(rest_angle)
         self.hinge_damping = farr(hinge_damping)
         self.hinge_instance = iarr(hinge_instance)
+        self.attach_vertex = iarr(attach.vertex)
+        self.attach_face = iarr(attach.face)
+        self.attach_bary = farr(attach.bary.reshape(-1, 3), types.vec3)
+        self.attach_offset = farr(attach.offset.reshape(-1, 3), types.vec3)
+        self.attach_stiffness = farr(attach.stiffness)
         self.bsr_offsets = iarr(self.pattern.offsets)
         self.bsr_columns = iarr(self.pattern.columns)
         self.bsr_rows = iarr(self.pattern.rows)

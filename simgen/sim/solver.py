@@ -6,7 +6,8 @@ One step of length h from (x_t, v_t) solves
     v_{t+1} = (x_{t+1} - x_t) / h,
 
 with Phi = StVK membrane + dihedral bending + gravity + body contact penalty + lagged friction +
-damping dissipation (+ optional cloth self-contact repulsion, candidates gathered at each step's start) (the terms of :mod:`simgen.sim.energies`). Its stationarity condition is
+damping dissipation + the floor's penalty + the springs of vertices attached to the body (a
+waistband) (+ optional cloth self-contact repulsion, candidates gathered at each step's start) (the terms of :mod:`simgen.sim.energies`). Its stationarity condition is
 exactly backward Euler, M (v_{t+1} - v_t) / h = f(x_{t+1}). Each Newton iteration assembles the
 gradient g and the PSD-projected Hessian H (values refilled in place in the model's fixed BSR
 pattern), solves H d = g with :class:`~simgen.sim.linear.BlockJacobiPCG` and sets x <- x - alpha d,
@@ -23,7 +24,7 @@ two half steps, recursively, up to ``max_retries`` levels; retries are counted i
 
 After each substep, an optional projection (:meth:`BodyCollider.project`) moves any vertex found
 inside its body onto the surface and removes its inward normal velocity, so no output vertex is
-inside. Friction's contact set (normal force, normal, closest body point) is lagged: taken at the
+inside; vertices below the floor are put back on it the same way. Friction's contact set (normal force, normal, closest body point) is lagged: taken at the
 end of the previous substep (after the projection), where cloth and body are at the same time.
 
 Host synchronisation: the Newton/PCG/line-search sequence reads nothing back inside a CUDA graph
@@ -50,9 +51,9 @@ import warp as wp
 from simgen.errors import InputError
 from simgen.sim.collider import BodyCollider
 from simgen.sim.energies import (ContactFrame, ContactParams, FrictionParams, GravityParams, SelfContactParams,
-                                 SelfContactSet, eval_bending, eval_contact, eval_damping, eval_friction,
+                                 SelfContactSet, eval_bending, eval_contact, eval_attachment, eval_damping, eval_floor, eval_friction,
                                  eval_gravity, eval_inertia, eval_membrane, eval_self_contact, load_kernels,
-                                 update_contact_frame)
+                                 project_floor, update_contact_frame)
 from simgen.sim.energies._common import module_name, scalar_types
 from simgen.sim.linear import BlockJacobiPCG
 from simgen.sim.model import ClothModel, ClothState
@@ -88,6 +89,8 @@ class SolverConfig:
     gravity, contact, friction: the energy parameters; friction=None switches friction off.
     self_contact: cloth-cloth vertex-triangle repulsion (:class:`SelfContactParams`); None (default)
       switches it off.
+    floor [m]: height of the ground plane y = floor (the body contact's penalty against it, and a
+      projection onto it after each substep; :mod:`simgen.sim.energies.floor`); None: no floor.
     damping: include the material damping potential (only matters if the material has damping).
     strain_limit: if set, after each (sub)step no triangle stretches past 1 + strain_limit in any
       direction (:mod:`simgen.sim.strain_limit`, ``strain_limit_iterations`` Jacobi passes, before
@@ -129,6 +132,7 @@ class SolverConfig:
     contact: ContactParams = field(default_factory=ContactParams)
     friction: FrictionParams | None = field(default_factory=FrictionParams)
     self_contact: SelfContactParams | None = None
+    floor: float | None = 0.0
     damping: bool = True
     strain_limit: float | None = None
     strain_limit_iterations: int = 8
@@ -144,6 +148,9 @@ class SolverConfig:
     guard_energy: bool = True
 
     def __post_init__(self) -> None:
+        if self.floor is not None and (isinstance(self.floor, bool) or not isinstance(self.floor, (int, float))
+                                       or not math.isfinite(self.floor)):
+            raise InputError(f"solver floor must be a finite number [m] or None, got {self.floor!r}")
         if self.strain_limit is not None and not (isinstance(self.strain_limit, (int, float))
                                                   and not isinstance(self.strain_limit, bool)
                                                   and math.isfinite(self.strain_limit) and self.strain_limit > 0):
@@ -477,6 +484,8 @@ class ImplicitSolver:
                               inputs=[self._depth, self._depth_max])
             if limit_last:
                 self.strain_limiter.apply(work, dt / n, outward=self._projected if half_space else None)
+            if cfg.floor is not None and cfg.project:
+                project_floor(self.model, work, cfg.floor, cfg.projection_offset)
             if projecting:
                 self._lag_contacts(work, body)
         state_out.assign(work)
@@ -547,8 +556,11 @@ class ImplicitSolver:
             if cfg.friction is not None:
                 eval_friction(m, x, self.x_start, mesh_ids, self.contact_frame, h, cfg.friction,
                               energy=energy, gradient=gradient, hessian=hessian)
+            eval_attachment(m, x, mesh_ids, energy=energy, gradient=gradient, hessian=hessian)
         if self.self_contact is not None:
             eval_self_contact(m, x, self.self_contact, energy=energy, gradient=gradient, hessian=hessian)
+        if cfg.floor is not None:
+            eval_floor(m, x, cfg.floor, cfg.contact, energy=energy, gradient=gradient, hessian=hessian)
         if cfg.damping and self.has_damping:
             eval_damping(m, x, self.x_start, h, energy=energy, gradient=gradient, hessian=hessian)
 
