@@ -188,6 +188,7 @@ def test_check_passes_then_finds_damage(tiny, tmp_path, monkeypatch):
     assert rep.passed, rep.format()
     assert rep.sequences == 4 and rep.frames == 20 and rep.frames_checked_body == 20
     assert 0 < rep.max_strain < 1.0
+    assert rep.min_body_share > 0.5 and rep.max_support_drop < 0.05 and rep.min_height > 0.5
     # Damage copies of the store, one way each; every one must be found.
     def damaged(name, how, stride=1):
         d = tmp_path / name
@@ -254,8 +255,43 @@ def test_check_passes_then_finds_damage(tiny, tmp_path, monkeypatch):
         (d / "manifest.json").write_text(json.dumps(m))
 
     r = damaged("inside", push_inside)
-    assert [p["check"] for p in r.problems if p["node"] == "sequences/walk_fast__zero"] == ["inside-body", "strain"]
+    # Body vertices in place of the shirt: inside the body, torn, and not where the shirt rests either.
+    assert [p["check"] for p in r.problems if p["node"] == "sequences/walk_fast__zero"] == [
+        "inside-body", "off-body", "strain"]
     assert r.max_depth > 5e-3
+
+    def rewrite(d, rel, how):
+        loc = Location(d)
+        arrays, attrs = node_arrays(loc, rel), loc.node_attrs(rel)
+        attrs.pop("commit")
+        arrays["garment_vertices"] = how(arrays["garment_vertices"].copy())
+        shutil.rmtree(d / rel)
+        commit = loc.write_node(rel, arrays, attrs)
+        m = json.loads((d / "manifest.json").read_text())
+        m["sequences"][rel.split("/")[1]]["checksum"] = commit["checksum"]
+        (d / "manifest.json").write_text(json.dumps(m))
+
+    def slide_down(x):
+        # From frame 2 on the shirt sits 15 cm lower on the body: it slipped.
+        x[2:, :, 1] -= 0.15
+        return x
+
+    r = damaged("slipped", lambda d: rewrite(d, "sequences/jumping_jacks__b1p2", slide_down))
+    off = [p for p in r.problems if p["check"] == "off-body"]
+    assert {p["node"] for p in r.problems} == {"sequences/jumping_jacks__b1p2"} and len(off) == 1
+    assert "slipped" in off[0]["message"] and "from frame 2" in off[0]["message"]
+    assert 0.12 < r.max_support_drop < 0.18
+
+    def fall(x):
+        # From frame 1 on the shirt lies on the floor half a metre beside the body, some of it 5 mm below it.
+        x[1:, :, 1] = 0.05 * (x[1:, :, 1] - x[1:, :, 1].min(axis=1, keepdims=True)) - 0.005
+        x[1:, :, 0] += 0.5
+        return x
+
+    r = damaged("fallen", lambda d: rewrite(d, "sequences/walk_fast__zero", fall))
+    messages = [p["message"] for p in r.problems if p["check"] == "off-body"]
+    assert len(messages) == 3 and "slipped" in messages[0] and "left the body" in messages[1]
+    assert "below the floor" in messages[2] and r.min_height == pytest.approx(-0.005, abs=1e-4)
 
     def stretch_one_frame(d):
         # One vertex of frame 1 pulled 10 cm out: a tangle on a frame the body stride skips.
@@ -280,8 +316,8 @@ def test_check_passes_then_finds_damage(tiny, tmp_path, monkeypatch):
     real_penetration = quality.body_penetration
 
     def all_at_self_intersections(points, *args, **kwargs):
-        depth, _ = real_penetration(points, *args, **kwargs)
-        return depth, np.ones(len(depth), dtype=bool)
+        depth, _, distance = real_penetration(points, *args, **kwargs)
+        return depth, np.ones(len(depth), dtype=bool), distance
 
     monkeypatch.setattr(quality, "body_penetration", all_at_self_intersections)
     r = check_dataset(tmp_path / "stretched", stride=1000)

@@ -88,6 +88,30 @@ def test_no_vertex_inside_except_self_intersections(setup):
     assert r.stats["self_intersection_count"][0] < 0.2 * garment.num_vertices
 
 
+def test_placement_statistics_equal_the_host_measures(setup):
+    """The driver's on-the-body measures (the garment skinned on the device by the body's LBS kernel,
+    the winding-number query's distances) equal simgen.sim.placement's on the numpy forward pass,
+    numpy LBS and the independent surface query."""
+    from simgen.garment.skinning import lbs
+    from simgen.sim.placement import PLACEMENT_KEYS, garment_reference, placement_row
+
+    body, garment, clip, r = setup
+    betas = np.repeat(body.check_betas(BETAS), FRAMES, 0)
+    posed = body.forward(betas, clip.poses[:FRAMES], clip.trans[:FRAMES])
+    ref = garment_reference(garment, body)
+    rest = ref.rest_vertices(garment.vertices, betas)
+    x_lbs = lbs(rest, garment.skin_weights, posed.transforms)
+    up = lbs(rest + [0.0, 1.0, 0.0], garment.skin_weights, posed.transforms) - x_lbs
+    assert 0 < ref.support.sum() < garment.num_vertices
+    for k in range(FRAMES):
+        dist = np.abs(signed_distance(r.positions[k], posed.vertices[k], body))
+        host = placement_row(r.positions[k], x_lbs[k], up[k], dist, ref.support)
+        for key in PLACEMENT_KEYS:
+            tol = 2.0 / garment.num_vertices if key == "body_share" else 2e-4
+            assert r.stats[key][k] == pytest.approx(host[key], abs=tol), (k, key)
+    assert np.all(r.stats["support_drop"] < 0.05) and np.all(r.stats["body_share"] > 0.5)
+
+
 def test_garment_follows_the_body(setup):
     body, garment, clip, r = setup
     joints = body.forward(np.repeat(body.check_betas(BETAS), FRAMES, 0), clip.poses[:FRAMES],

@@ -18,6 +18,10 @@ Problems:
   apart: cloth caught between two body parts that have moved into each other cannot keep its
   shape, whatever the solver does; those frames are reported as one warning with their count and
   largest strain;
+- the garment off the body (:mod:`simgen.sim.placement`, on the same frames as the penetration): its
+  support (where it rests on the body: shoulders, waistband) sagging more than 5 cm below its
+  skinned (LBS) position, fewer than half of its vertices within 5 cm of the body, or cloth more
+  than 1 mm below the floor;
 - fits whose stored displacement is not smooth(S_c) - T_c;
 - jobs recorded as failed in the manifest.
 
@@ -54,13 +58,45 @@ def _split_pinched_strain(over: dict, x, poses, trans, betas, bm, faces, **penet
         sel = frames[i:i + _POSE_CHUNK]
         posed = bm.forward(betas[sel], poses[sel], trans[sel]).vertices
         for j, k in enumerate(sel):
-            _, self_hit = body_penetration(x[k], posed[j], bm.faces, **penetration_kwargs)
+            _, self_hit, _ = body_penetration(x[k], posed[j], bm.faces, **penetration_kwargs)
             away = {f: v for f, v in over[k].items() if not np.any(self_hit[faces[f]])}
             if away:
                 free[k] = away
             else:
                 pinched[k] = over[k]
     return free, pinched
+
+
+def _check_body(x, frames, poses, trans, betas, bm, reference, tpl, max_depth: float, **penetration_kwargs):
+    """Penetration and placement of one sequence on its re-posed body, over ``frames``.
+
+    Returns (deepest regular depth [m], its frame, the vertices deeper than max_depth there) and
+    the :data:`simgen.sim.placement.PLACEMENT_KEYS` arrays over those frames (None without a
+    template)."""
+    from simgen.dataset.quality import body_penetration
+    from simgen.garment.skinning import lbs
+    from simgen.sim.placement import PLACEMENT_KEYS, placement_row
+
+    worst, rows = (0.0, -1, 0), []
+    for start in range(0, len(frames), _POSE_CHUNK):  # the forward pass holds (N, Vb, 4, 4) transforms
+        sel = frames[start:start + _POSE_CHUNK]
+        out = bm.forward(betas[sel], poses[sel], trans[sel])
+        posed = out.vertices
+        skinned = None
+        if reference is not None:
+            rest = reference.rest_vertices(tpl["garment_template"].astype(np.float64), betas[sel])
+            skinned = lbs(rest, tpl["skin_weights"], out.transforms)
+            up = lbs(rest + np.array([0.0, 1.0, 0.0]), tpl["skin_weights"], out.transforms) - skinned
+        for j, k in enumerate(sel):
+            depth, self_hit, distance = body_penetration(x[k], posed[j], bm.faces, **penetration_kwargs)
+            regular = np.where(self_hit, 0.0, depth)
+            d = float(regular.max(initial=0.0))
+            if d > worst[0]:
+                worst = (d, int(k), int(np.sum(regular > max_depth)))
+            if skinned is not None:
+                rows.append(placement_row(x[k], skinned[j], up[j], distance, reference.support))
+    placement = {key: np.array([r[key] for r in rows]) for key in PLACEMENT_KEYS} if rows else None
+    return worst, placement
 
 
 @dataclass
@@ -77,6 +113,9 @@ class CheckReport:
     max_strain: float = 0.0
     max_strain_regular: float = 0.0
     pinched_strain_frames: int = 0
+    min_body_share: float = 1.0
+    max_support_drop: float = 0.0
+    min_height: float = float("inf")
     planned: int | None = None
 
     @property
@@ -94,14 +133,18 @@ class CheckReport:
                 "sequences": self.sequences, "frames": self.frames, "frames_checked_body": self.frames_checked_body,
                 "max_depth": self.max_depth, "max_strain": self.max_strain,
                 "max_strain_regular": self.max_strain_regular, "pinched_strain_frames": self.pinched_strain_frames,
-                "planned": self.planned}
+                "min_body_share": self.min_body_share, "max_support_drop": self.max_support_drop,
+                "min_height": self.min_height if np.isfinite(self.min_height) else None, "planned": self.planned}
 
     def format(self) -> str:
         lines = [f"{self.path}: {self.sequences} sequences, {self.frames} frames"
                  + (f" of {self.planned} planned sequences" if self.planned is not None else "")
                  + f"; deepest regular vertex inside the body {1e3 * self.max_depth:.2f} mm over "
                    f"{self.frames_checked_body} frames; largest strain {100 * self.max_strain_regular:.1f}% "
-                   f"({100 * self.max_strain:.1f}% with body self-intersections)"]
+                   f"({100 * self.max_strain:.1f}% with body self-intersections); on the body: at least "
+                   f"{100 * self.min_body_share:.0f}% of the vertices within 5 cm, support at most "
+                   f"{100 * self.max_support_drop:.1f} cm below its skinned position"
+                 + (f", lowest vertex {1e3 * self.min_height:.1f} mm" if np.isfinite(self.min_height) else "")]
         for p in self.problems:
             lines.append(f"PROBLEM {p['node']} [{p['check']}]: {p['message']}")
         for w in self.warnings:
@@ -127,6 +170,7 @@ def check_dataset(path, *, body=None, stride: int = 1, max_depth: float = DEFAUL
     from simgen.dataset.quality import body_penetration, triangle_rest_inverse, triangle_strain
     from simgen.dataset.reader import open_dataset
     from simgen.errors import InputError
+    from simgen.sim.placement import garment_reference, placement_problems
 
     if isinstance(stride, bool) or not isinstance(stride, int) or stride < 1:
         raise InputError(f"--stride must be an integer >= 1, got {stride!r}")
@@ -193,8 +237,17 @@ def check_dataset(path, *, body=None, stride: int = 1, max_depth: float = DEFAUL
     from simgen.sim.energies.contact import ContactParams
 
     home_parts = vertex_parts(tpl["skin_weights"]) if tpl is not None else None
+    reference = None
+    if tpl is not None:
+        from simgen.garment.garment import Garment
+
+        cloth = Garment(str((ds.attrs.get("garment") or {}).get("name", "garment")), tpl["garment_template"],
+                        faces, tpl["skin_weights"])
+        reference = garment_reference(cloth, bm)
+    solver_config = (ds.attrs.get("solver") or {}).get("config") or {}
+    floor = solver_config.get("floor", 0.0)
     part_masks = face_part_masks(bm.v_template, bm.faces, face_parts(bm.weights, bm.faces))
-    contact = ((ds.attrs.get("solver") or {}).get("config") or {}).get("contact") or {}
+    contact = solver_config.get("contact") or {}
     pinch_distance = float(contact.get("pinch_distance", ContactParams.pinch_distance))
 
     # ---- fits
@@ -257,25 +310,20 @@ def check_dataset(path, *, body=None, stride: int = 1, max_depth: float = DEFAUL
             continue
         frames = np.arange(0, T, stride)
         poses, trans, betas = (arrays[k][...] for k in ("poses", "trans", "betas"))
-        worst = (0.0, -1, 0)
-        for i, k in enumerate(frames):
-            if i % _POSE_CHUNK == 0:  # the forward pass holds (N, Vb, 4, 4) blended transforms: chunk it
-                sel = frames[i:i + _POSE_CHUNK]
-                posed = bm.forward(betas[sel], poses[sel], trans[sel]).vertices
-            depth, self_hit = body_penetration(x[k], posed[i % _POSE_CHUNK], bm.faces, device=device,
-                                               home_parts=home_parts, part_masks=part_masks,
-                                               pinch_distance=pinch_distance)
-            regular = np.where(self_hit, 0.0, depth)
-            deep = int(np.sum(regular > max_depth))
-            d = float(regular.max(initial=0.0))
-            rep.max_depth = max(rep.max_depth, d)
-            if d > worst[0]:
-                worst = (d, int(k), deep)
+        worst, placement = _check_body(x, frames, poses, trans, betas, bm, reference, tpl, max_depth, device=device,
+                                       home_parts=home_parts, part_masks=part_masks, pinch_distance=pinch_distance)
         rep.frames_checked_body += len(frames)
+        rep.max_depth = max(rep.max_depth, worst[0])
         if worst[0] > max_depth:
             rep.problem(node, "inside-body", f"{worst[2]} cloth vertices more than {1e3 * max_depth:g} mm inside the "
                                              f"body at frame {worst[1]} (deepest {1e3 * worst[0]:.2f} mm; "
                                              f"self-intersections excluded)")
+        if placement is not None:
+            rep.min_body_share = min(rep.min_body_share, float(placement["body_share"].min()))
+            rep.max_support_drop = max(rep.max_support_drop, float(placement["support_drop"].max()))
+            rep.min_height = min(rep.min_height, float(placement["min_height"].min()))
+            for message in placement_problems(placement, floor):
+                rep.problem(node, "off-body", message + f" (frames checked every {stride})")
         if rest_inv is not None:
             over = {}  # frame -> {triangle: strain} of the triangles over the limit
             smax = below = 0.0

@@ -187,6 +187,9 @@ def _frame_stats(result, faces, rest_inverse) -> tuple[dict, dict]:
         "solver_retries": retries,
         "unresolved": int(np.sum(per_frame.get("unresolved", 0))) + int(np.sum(proto.get("unresolved", 0))),
         "initial_inside": int(result.metadata.get("initial_inside", 0)),
+        "min_body_share": float(np.min(per_frame["body_share"])),
+        "max_support_drop": float(np.max(per_frame["support_drop"])),
+        "min_height": float(np.min(per_frame["min_height"])),
     }
     return per_frame, summary
 

@@ -61,11 +61,13 @@ def strain_summary(positions, faces, rest_inverse) -> tuple[np.ndarray, np.ndarr
 
 def body_penetration(points, body_vertices, body_faces, *, probe: float = 2.0e-3, device: str = "cpu",
                      home_parts=None, part_masks=None, pinch_distance: float = 5.0e-3
-                     ) -> tuple[np.ndarray, np.ndarray]:
-    """Depth [m] of cloth vertices inside the posed body, and which are at a body self-intersection.
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Depth [m] of cloth vertices inside the posed body, which are at a body self-intersection, and
+    every vertex's distance to the body.
 
     points (V, 3) cloth vertices [m]; body_vertices (Vb, 3) posed body [m]; body_faces (Fb, 3).
-    Returns depth (V,) (0 outside; signed distance by the winding number) and self_hit (V,) bool:
+    Returns depth (V,) (0 outside; signed distance by the winding number), self_hit (V,) bool and
+    distance (V,) [m] (the unsigned distance to the body surface); self_hit is
     an inside vertex whose closest body point, moved ``probe`` outward along the surface normal,
     is still inside the body (the closest surface is buried in another body part, as in the
     armpits and crotch); or, given home_parts (V,) (each vertex's body part,
@@ -104,4 +106,4 @@ def body_penetration(points, body_vertices, body_faces, *, probe: float = 2.0e-3
             offset = pts[sel] - own.closest
             outside_own = np.einsum("ij,ij->i", offset, n) >= 0.0
             self_hit[sel] = outside_own & (np.linalg.norm(offset, axis=1) <= pinch_distance)
-    return depth, self_hit
+    return depth, self_hit, np.abs(proj.signed_distance)

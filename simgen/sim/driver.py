@@ -71,6 +71,10 @@ FRAME_STAT_KEYS = (
     "cg_iterations",              # PCG iterations over the frame's substeps
     "step_time",                  # [s] the frame's stepping (posing, refits, solver), synchronised
     "wall_time",                  # [s] host wall time of the frame, statistics included
+    "body_share",                 # share of the garment's vertices within 5 cm of the body (simgen.sim.placement)
+    "lbs_offset",                 # [m] median distance of the garment's support from its skinned (LBS) position
+    "support_drop",               # [m] median sag of the support below its skinned position (along the body's up)
+    "min_height",                 # [m] the lowest garment vertex (the floor is at y = 0)
 )
 
 
@@ -241,24 +245,30 @@ def _classify_inside(
     part_masks: wp.array(dtype=wp.int32),
     use_parts: int,
     pinch_distance: float,
+    distance: wp.array(dtype=wp.float32),
     depth: wp.array(dtype=wp.float32),
     inside: wp.array(dtype=wp.int32),
     self_hit: wp.array(dtype=wp.int32),
 ):
-    # depth[i] = distance to the body surface if inside, else 0; self_hit[i] = 1 if inside at a
-    # self-intersection. Inside/outside by the generalised winding number, which stays right
-    # where body parts overlap (a normal-based sign there reads the other part's outside).
+    # distance[i] = unsigned distance to the body surface (query_distance where farther); depth[i]
+    # = that distance if inside, else 0; self_hit[i] = 1 if inside at a self-intersection.
+    # Inside/outside by the generalised winding number, which stays right where body parts
+    # overlap (a normal-based sign there reads the other part's outside).
     i = wp.tid()
+    distance[i] = query_distance
     depth[i] = 0.0
     inside[i] = 0
     self_hit[i] = 0
     xi = x[i]
     winding_mesh = winding_meshes[vertex_instance[i]]
     q = wp.mesh_query_point_sign_winding_number(winding_mesh, xi, query_distance, 2.0, 0.5)
-    if not q.result or q.sign > 0.0:
+    if not q.result:
         return
     p = wp.mesh_eval_position(winding_mesh, q.face, q.u, q.v)
     d = wp.length(p - xi)
+    distance[i] = d
+    if q.sign > 0.0:
+        return
     depth[i] = d
     inside[i] = 1
     n = wp.vec3(0.0)
@@ -280,12 +290,17 @@ def _classify_inside(
 
 
 class _FrameStats:
-    """Per-frame statistics of every instance: penetration at the output frame."""
+    """Per-frame statistics of every instance: penetration, and whether the garment is on the body
+    (:mod:`simgen.sim.placement`) at the output frame."""
 
-    def __init__(self, model: ClothModel, collider: BodyCollider, config: SimulationConfig) -> None:
+    def __init__(self, model: ClothModel, collider: BodyCollider, config: SimulationConfig, wbody, garment,
+                 body) -> None:
+        from simgen.sim.placement import ON_BODY_DISTANCE, garment_reference
+
         dev = model.device
-        self.model, self.collider, self.config = model, collider, config
+        self.model, self.collider, self.config, self.wbody = model, collider, config, wbody
         n = model.num_vertices
+        self.distance = wp.zeros(n, dtype=wp.float32, device=dev)
         self.depth = wp.zeros(n, dtype=wp.float32, device=dev)
         self.inside = wp.zeros(n, dtype=wp.int32, device=dev)
         self.self_hit = wp.zeros(n, dtype=wp.int32, device=dev)
@@ -297,20 +312,47 @@ class _FrameStats:
             for k in range(collider.num_instances)]
         self.winding_ids = wp.array([m.id for m in self.winding_meshes], dtype=wp.uint64, device=dev)
         self.starts = np.asarray(model.vertex_start)
+        self.query_distance = max(float(config.query_distance), ON_BODY_DISTANCE)
+        # The garment's LBS positions: its template on each instance's shape, posed on the device by
+        # the body's own skinning kernel with the garment's weights.
+        self.reference = garment_reference(garment, body)
+        self.template = np.asarray(garment.vertices, dtype=np.float64)
+        ni, nvg = model.num_instances, len(self.template)
+        self.lbs_rest = wp.zeros((ni, nvg), dtype=wp.vec3, device=dev)
+        self.lbs_rest_up = wp.zeros((ni, nvg), dtype=wp.vec3, device=dev)
+        self.lbs = wp.zeros((ni, nvg), dtype=wp.vec3, device=dev)
+        self.lbs_up = wp.zeros((ni, nvg), dtype=wp.vec3, device=dev)
+        self.skin_joint = wp.array(self.reference.skin_joint, dtype=wp.int32, device=dev)
+        self.skin_weight = wp.array(self.reference.skin_weight.astype(np.float32), dtype=wp.float32, device=dev)
+        self.betas = None
 
-    def measure(self, positions: wp.array) -> list[dict]:
-        """One dict per instance (keys: the penetration entries of FRAME_STAT_KEYS)."""
+    def measure(self, positions: wp.array, betas: np.ndarray) -> list[dict]:
+        """One dict per instance (keys: the penetration and placement entries of FRAME_STAT_KEYS);
+        betas (N, B): each instance's body shape now."""
+        from simgen.body._warp_kernels import skinning_kernel
+        from simgen.sim.placement import placement_row
+
         for m in self.winding_meshes:
             m.refit()
-        cfg = self.config
-        wp.launch(_classify_inside, dim=self.model.num_vertices, device=self.model.device,
-                  inputs=[positions, self.model.vertex_instance, self.winding_ids, float(cfg.query_distance),
+        cfg, model = self.config, self.model
+        wp.launch(_classify_inside, dim=model.num_vertices, device=model.device,
+                  inputs=[positions, model.vertex_instance, self.winding_ids, self.query_distance,
                           float(cfg.self_intersection_probe),
-                          *part_inputs(self.model, self.collider.part_masks, cfg.solver.contact.pinch_distance),
-                          self.depth, self.inside, self.self_hit])
-        depth, inside, self_hit = self.depth.numpy(), self.inside.numpy(), self.self_hit.numpy()
+                          *part_inputs(model, self.collider.part_masks, cfg.solver.contact.pinch_distance),
+                          self.distance, self.depth, self.inside, self.self_hit])
+        if self.betas is None or not np.array_equal(self.betas, betas):
+            self.betas = np.array(betas, dtype=np.float64)
+            rest = self.reference.rest_vertices(self.template, self.betas)
+            self.lbs_rest.assign(rest.astype(np.float32))
+            self.lbs_rest_up.assign((rest + np.array([0.0, 1.0, 0.0])).astype(np.float32))
+        for rest, out in ((self.lbs_rest, self.lbs), (self.lbs_rest_up, self.lbs_up)):
+            wp.launch(skinning_kernel, dim=out.shape, device=model.device,
+                      inputs=[rest, self.wbody.transforms, self.skin_joint, self.skin_weight], outputs=[out])
+        x, lbs = positions.numpy(), self.lbs.numpy()
+        up = self.lbs_up.numpy() - lbs
+        dist, depth, inside, self_hit = (a.numpy() for a in (self.distance, self.depth, self.inside, self.self_hit))
         rows = []
-        for a, b in zip(self.starts[:-1], self.starts[1:]):
+        for k, (a, b) in enumerate(zip(self.starts[:-1], self.starts[1:])):
             d, ins, sh = depth[a:b], inside[a:b], self_hit[a:b]
             regular = (ins != 0) & (sh == 0)
             rows.append(dict(
@@ -319,6 +361,7 @@ class _FrameStats:
                 inside_count=int(ins.sum()),
                 inside_share=float(ins.sum()) / max(b - a, 1),
                 self_intersection_count=int(sh.sum()),
+                **placement_row(x[a:b], lbs[k], up[k], dist[a:b], self.reference.support),
             ))
         return rows
 
@@ -498,7 +541,7 @@ def simulate_batch(garment, body, jobs, config: SimulationConfig | None = None, 
     built: list = []
     for mat in materials:
         if not any(m == mat for m, _ in built):
-            built.append((mat, ClothModel.from_garment(garment, mat, device=device)))
+            built.append((mat, ClothModel.from_garment(garment, mat, body=body, device=device)))
     parts = [next(mdl for m, mdl in built if m == mat) for mat in materials]
     model = parts[0] if N == 1 else ClothModel.concatenate(parts)
     starts = np.asarray(model.vertex_start)
@@ -531,8 +574,8 @@ def simulate_batch(garment, body, jobs, config: SimulationConfig | None = None, 
     x0 = (np.asarray(garment.vertices, dtype=np.float64)[None] + trans0[:, None]).astype(np.float32)
     state.positions.assign(x0.reshape(-1, 3))
     state.velocities.zero_()
-    stats_probe = _FrameStats(model, collider, cfg)
-    initial = stats_probe.measure(state.positions)
+    stats_probe = _FrameStats(model, collider, cfg, wbody, garment, body)
+    initial = stats_probe.measure(state.positions, np.zeros((N, nb)))
     if any(r["inside_count"] for r in initial):
         # The garment must never start inside the body: project what a bad template left inside.
         collider.project(model, state, offset=cfg.solver.projection_offset, query_distance=cfg.query_distance,
@@ -713,7 +756,7 @@ def simulate_batch(garment, body, jobs, config: SimulationConfig | None = None, 
             current_betas = np.array(bt[-1])
         else:
             step_time = 0.0
-        rows = stats_probe.measure(state.positions)
+        rows = stats_probe.measure(state.positions, current_betas)
         st = solver.stats
         per = solver.instance_stats
         x = state.positions.numpy().astype(np.float32)
