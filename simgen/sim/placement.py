@@ -9,8 +9,12 @@ it; three measures per frame tell:
   (LBS) position: the template carried to the body's shape by the diffused shape blendshape
   (:func:`simgen.garment.shape_offsets`) and posed by linear blend skinning with the garment's
   weights, the LBS baseline of ``simgen garment preview``. The support vertices are those within
-  :data:`SUPPORT_CLEARANCE` (2 cm) of the template body at rest: where the garment rests on the body
-  (shoulders and neck of a top or a dress, the waistband and seat of a skirt, pants or shorts);
+  :data:`SUPPORT_CLEARANCE` (2 cm) of the template body at rest and skinned mostly to the trunk
+  (pelvis, spine1-3): where the garment rests on the body (the chest and back of a top or a dress,
+  the waistband of a skirt, pants or shorts). Cloth skinned to the collar, shoulder and hip joints
+  is left out: LBS lifts the shoulders' cloth by 5-10 cm when the arms rise and moves the seat
+  with the thighs, while the cloth stays where it hangs, and measured against that a top that
+  never moved "dropped" up to 10 cm (the library on the GPU, BENCHMARKS.md);
 - ``support_drop`` [m]: the median of how far those vertices sit *below* their skinned position,
   along the body's own up axis there (the skinned direction of +y): a garment that slides down
   the body (a waistband slipped to the hips, pants at the ankles) drops; cloth that lags or rides
@@ -39,6 +43,7 @@ SUPPORT_CLEARANCE = 0.02       # [m] template vertices this close to the rest bo
 MIN_BODY_SHARE = 0.25          # [-] fewer vertices on the body than this: the garment is off it
 MAX_SUPPORT_DROP = 0.05        # [m] support this far below its LBS position: the garment has slipped
 FLOOR_TOLERANCE = 1.0e-3       # [m] a vertex further below the floor has gone through it
+TRUNK_JOINTS = (0, 3, 6, 9)    # pelvis, spine1-3: the support is skinned to the trunk
 PLACEMENT_KEYS = ("body_share", "lbs_offset", "support_drop", "min_height")
 
 
@@ -71,7 +76,8 @@ def _reference(garment, body) -> GarmentReference:
     from simgen.garment.skinning import closest_body_points, shape_offsets
 
     v = garment.vertices
-    support = np.abs(closest_body_points(v, body).distance) < SUPPORT_CLEARANCE
+    trunk = np.isin(np.argmax(garment.skin_weights, axis=1), TRUNK_JOINTS)
+    support = trunk & (np.abs(closest_body_points(v, body).distance) < SUPPORT_CLEARANCE)
     dirs = (np.moveaxis(shape_offsets(v, body, np.eye(body.num_betas)), 0, 2) if body.num_betas
             else np.zeros((len(v), 3, 1)))
     w = garment.skin_weights
