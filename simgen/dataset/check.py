@@ -19,9 +19,9 @@ Problems:
   shape, whatever the solver does; those frames are reported as one warning with their count and
   largest strain;
 - the garment off the body (:mod:`simgen.sim.placement`, on the same frames as the penetration): its
-  support (where it rests on the body: shoulders, waistband) sagging more than 5 cm below its
-  skinned (LBS) position, fewer than half of its vertices within 5 cm of the body, or cloth more
-  than 1 mm below the floor;
+  support (the top 5 cm it hangs from: waistband, or neckline and shoulders) more than
+  ``MAX_SUPPORT_DROP`` (8 cm) below its skinned (LBS) position, fewer than ``MIN_BODY_SHARE`` (a
+  quarter) of its vertices within 5 cm of the body, or cloth more than 1 mm below the floor;
 - fits whose stored displacement is not smooth(S_c) - T_c;
 - jobs recorded as failed in the manifest.
 
