@@ -20,7 +20,7 @@ Problems:
   largest strain;
 - the garment off the body (:mod:`simgen.sim.placement`, on the same frames as the penetration): its
   support (the top 5 cm it hangs from: waistband, or neckline and shoulders) more than
-  ``MAX_SUPPORT_DROP`` (8 cm) below its skinned (LBS) position, fewer than ``MIN_BODY_SHARE`` (a
+  ``MAX_SUPPORT_DROP`` (10 cm) below its skinned (LBS) position, fewer than ``MIN_BODY_SHARE`` (a
   quarter) of its vertices within 5 cm of the body, or cloth more than 1 mm below the floor;
 - fits whose stored displacement is not smooth(S_c) - T_c;
 - jobs recorded as failed in the manifest.

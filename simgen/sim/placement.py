@@ -22,8 +22,9 @@ The check fails a sequence with a frame where the support has dropped more than
 :data:`MAX_SUPPORT_DROP` below its LBS position, fewer than :data:`MIN_BODY_SHARE` of the vertices are on the body, or a
 vertex is more than :data:`FLOOR_TOLERANCE` below the floor. The limits were set on simulated
 sequences (docs/sim.md, "Is the garment on the body"): the largest drop of a garment that stayed on
-was 7.3 cm (the dress lagging as the slim body rises out of a squat, recovering within a second);
-a waistband pushed down to the hip joints drops 12.6 cm, a garment on the floor far more.
+was 8.1 cm (the dress lagging behind the slim body in walk_fast and out of a squat, recovering
+within a second); a waistband pushed down to the hip joints drops 12.6 cm, a garment on the floor
+far more.
 """
 
 from __future__ import annotations
@@ -38,7 +39,7 @@ __all__ = ["ON_BODY_DISTANCE", "SUPPORT_BAND", "MIN_BODY_SHARE", "MAX_SUPPORT_DR
 ON_BODY_DISTANCE = 0.05        # [m] a vertex this close to the body surface is on the body
 SUPPORT_BAND = 0.05            # [m] template vertices this close below its top are the support
 MIN_BODY_SHARE = 0.25          # [-] fewer vertices on the body than this: the garment is off it
-MAX_SUPPORT_DROP = 0.08        # [m] support this far below its LBS position: the garment has slipped
+MAX_SUPPORT_DROP = 0.10        # [m] support this far below its LBS position: the garment has slipped
 FLOOR_TOLERANCE = 1.0e-3       # [m] a vertex further below the floor has gone through it
 PLACEMENT_KEYS = ("body_share", "lbs_offset", "support_drop", "min_height")
 
