@@ -490,14 +490,15 @@ def _simulate_and_write(*, garment: str, motion: str, body: str, betas: Optional
         progress, update = _progress("rendering", result.num_frames)
         with progress:
             typer.echo(f"mp4: {render_sequence(out / f'{stem}.mp4', tracks, fps=result.fps, progress=update)}")
+    from simgen.sim.placement import ON_BODY_DISTANCE, placement_problems
+
     st = result.stats
     typer.echo(f"{result.num_frames} frames; max depth inside the body (self-intersections excluded) "
                f"{1e3 * float(np.max(st['max_depth_regular'])):.2f} mm; retries {int(np.sum(st['retries']))}; "
-               f"on the body: at least {100 * float(np.min(st['body_share'])):.0f}% of the vertices within 5 cm, "
+               f"on the body: at least {100 * float(np.min(st['body_share'])):.0f}% of the vertices within "
+               f"{100 * ON_BODY_DISTANCE:g} cm, "
                f"support at most {100 * float(np.max(st['support_drop'])):.1f} cm below its skinned position, "
                f"lowest vertex {1e3 * float(np.min(st['min_height'])):.1f} mm")
-    from simgen.sim.placement import placement_problems
-
     for problem in placement_problems(st, config.solver.floor):
         typer.echo(f"warning: {problem}", err=True)
 

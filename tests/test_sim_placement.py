@@ -23,7 +23,7 @@ from simgen.garment.garment import Garment
 from simgen.garment.library import load_garment
 from simgen.garment.skinning import lbs
 from simgen.garment.waistband import band_vertices
-from simgen.sim import BodyCollider, ClothModel, ImplicitSolver, SolverConfig, get_material
+from simgen.sim import BodyCollider, ClothModel, ImplicitSolver, SolverConfig
 from simgen.sim.energies import ContactParams, GravityParams
 from simgen.sim.placement import (MAX_SUPPORT_DROP, MIN_BODY_SHARE, garment_reference, placement_problems,
                                   placement_row)
@@ -269,4 +269,13 @@ def test_a_dress_at_full_swing_passes(posed):
           f"{100 * row['support_drop']:.2f} cm")
     assert row["body_share"] < 0.8
     assert problems(row) == []
-    assert MAX_SUPPORT_DROP > 0.02
+
+
+def test_problems_name_the_checked_frame_numbers():
+    """A check that measures every 10th frame reports frame numbers, not positions in its list."""
+    stats = {"body_share": np.array([0.9, 0.9, 0.1]), "support_drop": np.array([0.0, 0.2, 0.3]),
+             "min_height": np.array([0.1, 0.1, -0.01]), "lbs_offset": np.zeros(3)}
+    out = placement_problems(stats, 0.0, frames=[0, 10, 20])
+    assert [m.split(":")[0] for m in out] == ["the garment slipped", "the garment left the body", "cloth 10.0 mm below the floor on 1 of 3 frames from frame 20"]
+    assert "on 2 of 3 frames from frame 10" in out[0] and "from frame 20" in out[1]
+    assert placement_problems(stats, None, frames=[0, 10, 20])[-1].startswith("the garment left")

@@ -137,14 +137,17 @@ class CheckReport:
                 "min_height": self.min_height if np.isfinite(self.min_height) else None, "planned": self.planned}
 
     def format(self) -> str:
+        from simgen.sim.placement import ON_BODY_DISTANCE
+
         lines = [f"{self.path}: {self.sequences} sequences, {self.frames} frames"
                  + (f" of {self.planned} planned sequences" if self.planned is not None else "")
                  + f"; deepest regular vertex inside the body {1e3 * self.max_depth:.2f} mm over "
                    f"{self.frames_checked_body} frames; largest strain {100 * self.max_strain_regular:.1f}% "
-                   f"({100 * self.max_strain:.1f}% with body self-intersections); on the body: at least "
-                   f"{100 * self.min_body_share:.0f}% of the vertices within 5 cm, support at most "
-                   f"{100 * self.max_support_drop:.1f} cm below its skinned position"
-                 + (f", lowest vertex {1e3 * self.min_height:.1f} mm" if np.isfinite(self.min_height) else "")]
+                   f"({100 * self.max_strain:.1f}% with body self-intersections)"
+                 + (f"; on the body: at least {100 * self.min_body_share:.0f}% of the vertices within "
+                    f"{100 * ON_BODY_DISTANCE:g} cm, support at most {100 * self.max_support_drop:.1f} cm below its "
+                    f"skinned position, lowest vertex {1e3 * self.min_height:.1f} mm"
+                    if np.isfinite(self.min_height) else "")]
         for p in self.problems:
             lines.append(f"PROBLEM {p['node']} [{p['check']}]: {p['message']}")
         for w in self.warnings:
@@ -167,7 +170,7 @@ def check_dataset(path, *, body=None, stride: int = 1, max_depth: float = DEFAUL
 
     from simgen.dataset.execute import quiet_warp
     from simgen.dataset.groundtruth import SmoothingParams, smooth_garment
-    from simgen.dataset.quality import body_penetration, triangle_rest_inverse, triangle_strain
+    from simgen.dataset.quality import triangle_rest_inverse, triangle_strain
     from simgen.dataset.reader import open_dataset
     from simgen.errors import InputError
     from simgen.sim.placement import garment_reference, placement_problems
@@ -245,7 +248,7 @@ def check_dataset(path, *, body=None, stride: int = 1, max_depth: float = DEFAUL
                         faces, tpl["skin_weights"])
         reference = garment_reference(cloth, bm)
     solver_config = (ds.attrs.get("solver") or {}).get("config") or {}
-    floor = solver_config.get("floor", 0.0)
+    floor = solver_config.get("floor")  # stores made before the floor have none
     part_masks = face_part_masks(bm.v_template, bm.faces, face_parts(bm.weights, bm.faces))
     contact = solver_config.get("contact") or {}
     pinch_distance = float(contact.get("pinch_distance", ContactParams.pinch_distance))
@@ -322,8 +325,8 @@ def check_dataset(path, *, body=None, stride: int = 1, max_depth: float = DEFAUL
             rep.min_body_share = min(rep.min_body_share, float(placement["body_share"].min()))
             rep.max_support_drop = max(rep.max_support_drop, float(placement["support_drop"].max()))
             rep.min_height = min(rep.min_height, float(placement["min_height"].min()))
-            for message in placement_problems(placement, floor):
-                rep.problem(node, "off-body", message + f" (frames checked every {stride})")
+            for message in placement_problems(placement, floor, frames):
+                rep.problem(node, "off-body", message + (f" (frames checked every {stride})" if stride > 1 else ""))
         if rest_inv is not None:
             over = {}  # frame -> {triangle: strain} of the triangles over the limit
             smax = below = 0.0

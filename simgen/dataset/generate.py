@@ -84,10 +84,14 @@ class StoreReport:
 
 
 def garment_hash(garment) -> str:
-    """SHA-256 of the garment's vertices, faces and skin weights (float32/int32 bytes)."""
+    """SHA-256 of the garment's vertices, faces and skin weights (float32/int32 bytes) and, where it
+    has one, its waistband (what is tied to the body changes the simulation)."""
     h = hashlib.sha256()
     for a, dt in ((garment.vertices, np.float32), (garment.faces, np.int32), (garment.skin_weights, np.float32)):
         h.update(np.ascontiguousarray(a, dtype=dt).tobytes())
+    band = (garment.metadata or {}).get("waistband")
+    if band:
+        h.update(json.dumps(band, sort_keys=True).encode())
     return h.hexdigest()
 
 

@@ -332,6 +332,9 @@ class DatasetSpec:
             "solver": self.solver, "relax_frames": self.relax_frames, "ramp_frames": self.ramp_frames,
             "rest_frames": self.rest_frames, "store_rest_frames": self.store_rest_frames,
             "smoothing": self.smoothing, "start_frame": self.start_frame, "max_frames": self.max_frames,
+            # The floor (SolverConfig.floor's default; specs cannot change it) came with the
+            # waistbands: stores simulated without it cannot be resumed.
+            "floor": 0.0,
             # Only when on, so stores made before the option existed keep their key.
             **({"self_contact": True} if self.self_contact else {}),
         }

@@ -261,10 +261,14 @@ class BodyCollider:
             m.refit()
 
     def check_model(self, model) -> None:
-        """Raise InputError unless this collider has one body per instance of ``model``."""
+        """Raise InputError unless this collider has one body per instance of ``model`` and the body
+        triangles its attachments are tied to."""
         if model.num_instances != self.num_instances:
             raise InputError(f"the body collider has {self.num_instances} bodies but the cloth model has "
                              f"{model.num_instances} instances")
+        if model.num_attachments and int(model.host.attach_face.max()) >= self.num_body_faces:
+            raise InputError(f"the cloth model's waistband is tied to body triangle {int(model.host.attach_face.max())}, "
+                             f"but the body has {self.num_body_faces}: build the model on the body it is simulated with")
 
     def project(self, model, state, *, offset: float = 0.0, query_distance: float = 0.05,
                 pinch_distance: float = ContactParams.pinch_distance, depth=None, count=None,

@@ -74,7 +74,7 @@ FRAME_STAT_KEYS = (
     "body_share",                 # share of the garment's vertices within 5 cm of the body (simgen.sim.placement)
     "lbs_offset",                 # [m] median distance of the garment's support from its skinned (LBS) position
     "support_drop",               # [m] median sag of the support below its skinned position (along the body's up)
-    "min_height",                 # [m] the lowest garment vertex (the floor is at y = 0)
+    "min_height",                 # [m] the lowest garment vertex (the floor: SolverConfig.floor)
 )
 
 

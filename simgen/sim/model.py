@@ -191,10 +191,10 @@ class ClothModelBuilder:
                 raise InputError(f"{where}: body_part must be {len(vertices)} integers in [0, {len(BODY_PARTS)})")
             body_part = body_part.astype(np.int32)
         _triangle_rest_frames(vertices, faces)  # validates the rest shape now, naming the instance
-        if attachment is not None and len(attachment.vertices) and (
-                attachment.vertices.min() < 0 or attachment.vertices.max() >= len(vertices)):
-            raise InputError(f"{where}: attachment vertex {int(attachment.vertices.max())} out of range "
-                             f"for {len(vertices)} vertices")
+        if attachment is not None:
+            outside = attachment.vertices[(attachment.vertices < 0) | (attachment.vertices >= len(vertices))]
+            if len(outside):
+                raise InputError(f"{where}: attachment vertex {int(outside[0])} out of range for {len(vertices)} vertices")
         hinges, hinge_faces = extract_hinges(faces)
         self.instances.append(InstanceSpec(
             name=name or f"instance{k}", vertices=vertices.copy(), faces=faces, hinges=hinges,

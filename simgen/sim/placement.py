@@ -110,23 +110,29 @@ def placement_row(positions, lbs_positions, lbs_up, distance_to_body, support) -
                 min_height=float(x[:, 1].min()))
 
 
-def placement_problems(stats: dict, floor: float | None = 0.0) -> list[str]:
+def placement_problems(stats: dict, floor: float | None = 0.0, frames=None) -> list[str]:
     """Sentences naming the first frame where each limit is broken, for per-frame ``stats`` (the
-    :data:`PLACEMENT_KEYS` arrays over frames); empty when the garment stays on the body."""
+    :data:`PLACEMENT_KEYS` arrays over frames); empty when the garment stays on the body.
+
+    floor: the floor's height [m], or None (no floor). frames: the frame numbers the stats were
+    measured on (default 0, 1, ...), for a check that measures every n-th frame."""
     out = []
     share, drop, low = (np.asarray(stats[k], dtype=np.float64) for k in ("body_share", "support_drop", "min_height"))
+    frames = np.arange(len(drop)) if frames is None else np.asarray(frames)
+
+    def where(bad):
+        return f"on {len(bad)} of {len(frames)} frames from frame {int(frames[bad[0]])}"
+
     bad = np.flatnonzero(drop > MAX_SUPPORT_DROP)
     if len(bad):
         out.append(f"the garment slipped: its support sits {100 * drop.max():.1f} cm below its skinned position "
-                   f"(limit {100 * MAX_SUPPORT_DROP:g} cm) on {len(bad)} frames from frame {bad[0]}")
+                   f"(limit {100 * MAX_SUPPORT_DROP:g} cm) {where(bad)}")
     bad = np.flatnonzero(share < MIN_BODY_SHARE)
     if len(bad):
         out.append(f"the garment left the body: {100 * share.min():.0f}% of its vertices within "
-                   f"{100 * ON_BODY_DISTANCE:g} cm of it (limit {100 * MIN_BODY_SHARE:g}%) on {len(bad)} frames "
-                   f"from frame {bad[0]}")
+                   f"{100 * ON_BODY_DISTANCE:g} cm of it (limit {100 * MIN_BODY_SHARE:g}%) {where(bad)}")
     if floor is not None:
         bad = np.flatnonzero(low < floor - FLOOR_TOLERANCE)
         if len(bad):
-            out.append(f"cloth {1e3 * (floor - low.min()):.1f} mm below the floor on {len(bad)} frames "
-                       f"from frame {bad[0]}")
+            out.append(f"cloth {1e3 * (floor - low.min()):.1f} mm below the floor {where(bad)}")
     return out

@@ -89,8 +89,9 @@ class SolverConfig:
     gravity, contact, friction: the energy parameters; friction=None switches friction off.
     self_contact: cloth-cloth vertex-triangle repulsion (:class:`SelfContactParams`); None (default)
       switches it off.
-    floor [m]: height of the ground plane y = floor (the body contact's penalty against it, and a
-      projection onto it after each substep; :mod:`simgen.sim.energies.floor`); None: no floor.
+    floor [m]: height of the ground plane y = floor (the body contact's penalty against it and,
+      with ``project``, a projection onto it after each substep; :mod:`simgen.sim.energies.floor`);
+      None: no floor.
     damping: include the material damping potential (only matters if the material has damping).
     strain_limit: if set, after each (sub)step no triangle stretches past 1 + strain_limit in any
       direction (:mod:`simgen.sim.strain_limit`, ``strain_limit_iterations`` Jacobi passes, before
