@@ -377,52 +377,6 @@ def test_batch_energies_are_each_instances_own(device):
         assert together == pytest.approx(own, rel=1e-4), term.__name__
 
 
-# -- floor and attachment ---------------------------------------------------------------------------
-
-def test_floor_analytic_and_fd():
-    """E = k max(margin - (y - h), 0)^p per vertex, heights on both sides of the margin and below
-    the floor; gradient and Hessian against float64 finite differences, for p = 3 and p = 2."""
-    v, f = grid(3, size=0.1)
-    heights = np.array([1.5e-3, 0.5e-3, -1.0e-3, 3e-3, 1.0e-3, -2.5e-3, 0.2e-3, 5e-3, 1.8e-3])
-    floor = 0.25
-    v[:, 1] = floor + heights
-    m = model64(v, f)
-    for p in (ContactParams(margin=2e-3, stiffness=1e4, power=3), ContactParams(power=2.0, stiffness=50.0)):
-        e, _, h = evaluate(m, eval_floor, v, floor, p)
-        assert e.sum() == pytest.approx(np.sum(p.stiffness * np.maximum(p.margin - heights, 0) ** p.power), rel=1e-9)
-        check_fd(m, eval_floor, v, floor, p)
-        assert min_eig_rel(h) > -1e-12
-
-
-def test_attachment_analytic_and_fd(box):
-    """k/2 |x - a|^2 with a = the barycentric point of a body triangle plus an offset in its frame
-    (t1 along the first edge, n the normal, t2 = n x t1): energy by hand, gradient and Hessian by
-    finite differences; an instance without a body mesh has no springs."""
-    from simgen.garment.waistband import Attachment
-
-    mesh, bv, bf = box
-    x, f = cloth_over_top_face(np.full(9, 4e-3))
-    rng = np.random.default_rng(5)
-    x = x + 0.003 * rng.normal(size=x.shape)
-    verts, faces_b = np.array([0, 4, 7]), np.array([2, 5, 9])
-    bary = rng.dirichlet(np.ones(3), size=3)
-    offset = 0.004 * rng.normal(size=(3, 3))
-    k = np.array([120.0, 80.0, 200.0])
-    m = model64(x, f, attachment=Attachment(verts, faces_b, bary, offset, k))
-    corners = bv[bf[faces_b]]
-    e1 = corners[:, 1] - corners[:, 0]
-    n = np.cross(e1, corners[:, 2] - corners[:, 0])
-    n /= np.linalg.norm(n, axis=1, keepdims=True)
-    t1 = e1 / np.linalg.norm(e1, axis=1, keepdims=True)
-    anchor = (np.einsum("ab,abc->ac", bary, corners) + offset[:, :1] * t1 + offset[:, 1:2] * n
-              + offset[:, 2:] * np.cross(n, t1))
-    e, _, _ = evaluate(m, eval_attachment, x, mesh_ids(mesh))
-    assert e.sum() == pytest.approx(np.sum(0.5 * k * np.sum((x[verts] - anchor) ** 2, axis=1)), rel=1e-6)
-    check_fd(m, eval_attachment, x, mesh_ids(mesh))
-    e, g, _ = evaluate(m, eval_attachment, x, mesh_ids(None))
-    assert e.sum() == 0.0 and not g.any()
-
-
 # -- body contact -----------------------------------------------------------------------------------
 
 def box_body(center=(0.0, 0.0, 0.0), half=0.125):
@@ -520,6 +474,52 @@ def test_contact_params_validation():
     for bad in (dict(margin=0.0), dict(stiffness=-1.0), dict(power=1.5), dict(query_distance=1e-3)):
         with pytest.raises(InputError):
             ContactParams(**bad)
+
+
+# -- floor and attachment ---------------------------------------------------------------------------
+
+def test_floor_analytic_and_fd():
+    """E = k max(margin - (y - h), 0)^p per vertex, heights on both sides of the margin and below
+    the floor; gradient and Hessian against float64 finite differences, for p = 3 and p = 2."""
+    v, f = grid(3, size=0.1)
+    heights = np.array([1.5e-3, 0.5e-3, -1.0e-3, 3e-3, 1.0e-3, -2.5e-3, 0.2e-3, 5e-3, 1.8e-3])
+    floor = 0.25
+    v[:, 1] = floor + heights
+    m = model64(v, f)
+    for p in (ContactParams(margin=2e-3, stiffness=1e4, power=3), ContactParams(power=2.0, stiffness=50.0)):
+        e, _, h = evaluate(m, eval_floor, v, floor, p)
+        assert e.sum() == pytest.approx(np.sum(p.stiffness * np.maximum(p.margin - heights, 0) ** p.power), rel=1e-9)
+        check_fd(m, eval_floor, v, floor, p)
+        assert min_eig_rel(h) > -1e-12
+
+
+def test_attachment_analytic_and_fd(box):
+    """k/2 |x - a|^2 with a = the barycentric point of a body triangle plus an offset in its frame
+    (t1 along the first edge, n the normal, t2 = n x t1): energy by hand, gradient and Hessian by
+    finite differences; an instance without a body mesh has no springs."""
+    from simgen.garment.waistband import Attachment
+
+    mesh, bv, bf = box
+    x, f = cloth_over_top_face(np.full(9, 4e-3))
+    rng = np.random.default_rng(5)
+    x = x + 0.003 * rng.normal(size=x.shape)
+    verts, faces_b = np.array([0, 4, 7]), np.array([2, 5, 9])
+    bary = rng.dirichlet(np.ones(3), size=3)
+    offset = 0.004 * rng.normal(size=(3, 3))
+    k = np.array([120.0, 80.0, 200.0])
+    m = model64(x, f, attachment=Attachment(verts, faces_b, bary, offset, k))
+    corners = bv[bf[faces_b]]
+    e1 = corners[:, 1] - corners[:, 0]
+    n = np.cross(e1, corners[:, 2] - corners[:, 0])
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    t1 = e1 / np.linalg.norm(e1, axis=1, keepdims=True)
+    anchor = (np.einsum("ab,abc->ac", bary, corners) + offset[:, :1] * t1 + offset[:, 1:2] * n
+              + offset[:, 2:] * np.cross(n, t1))
+    e, _, _ = evaluate(m, eval_attachment, x, mesh_ids(mesh))
+    assert e.sum() == pytest.approx(np.sum(0.5 * k * np.sum((x[verts] - anchor) ** 2, axis=1)), rel=1e-6)
+    check_fd(m, eval_attachment, x, mesh_ids(mesh))
+    e, g, _ = evaluate(m, eval_attachment, x, mesh_ids(None))
+    assert e.sum() == 0.0 and not g.any()
 
 
 # -- friction ---------------------------------------------------------------------------------------

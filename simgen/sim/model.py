@@ -276,13 +276,13 @@ class ClothModel:
         :mod:`simgen.garment.waistband`).
         """
         from simgen.body.parts import vertex_parts
-        from simgen.garment.waistband import band_vertices, waistband_attachment
+        from simgen.garment.waistband import waistband_attachment
 
         if material is None:
             material = (garment.metadata or {}).get("default_material") or "cotton"
         material = get_material(material)
         attachment = None
-        if len(band_vertices(garment)):
+        if (garment.metadata or {}).get("waistband") is not None:
             if body is None:
                 raise InputError(f"garment {garment.name!r} has a waistband: building its model needs the body "
                                  "it is tied to")
