@@ -365,7 +365,7 @@ def main() -> None:
     args = parser.parse_args()
 
     from simgen.body import load
-    from simgen.dataset.execute import quiet_warp
+    from simgen._warp_log import quiet_warp
     from simgen.garment import load_garment
 
     quiet_warp()

@@ -74,7 +74,7 @@ def main(argv=None) -> int:
 
     from simgen.dataset import generate_dataset, load_spec
     from simgen.dataset._cli import plan_summary
-    from simgen.dataset.execute import quiet_warp
+    from simgen._warp_log import quiet_warp
 
     quiet_warp()
     spec = load_spec(a.spec).with_overrides(device=a.device, batch_size=a.batch_size,

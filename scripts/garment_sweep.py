@@ -40,7 +40,7 @@ def main(argv=None) -> int:
     a = p.parse_args(argv)
 
     from simgen.dataset import check_dataset, generate_dataset, load_spec
-    from simgen.dataset.execute import quiet_warp
+    from simgen._warp_log import quiet_warp
 
     quiet_warp()
     spec = load_spec(a.spec).with_overrides(device=a.device, max_frames=a.max_frames,

@@ -37,7 +37,7 @@ _LAZY = {
     "generate_dataset": "simgen.dataset.generate",
     "plan_jobs": "simgen.dataset.generate",
     "StoreReport": "simgen.dataset.generate",
-    "GenerationError": "simgen.dataset.generate",
+    "GenerationError": "simgen.errors",
     "open_dataset": "simgen.dataset.reader",
     "Dataset": "simgen.dataset.reader",
     "check_dataset": "simgen.dataset.check",

@@ -35,6 +35,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from simgen.dataset.quality import DEFAULT_MAX_STRAIN
 from simgen.dataset.storage import STAGING, arrays_checksum
 from simgen.dataset.store import node_arrays
 
@@ -43,7 +44,6 @@ __all__ = ["CheckReport", "check_dataset", "DEFAULT_MAX_DEPTH", "DEFAULT_MAX_STR
 DEFAULT_MAX_DEPTH = 1.0e-3     # [m] the solver's contract: no vertex more than 1 mm inside (self-intersections apart)
 _POSE_CHUNK = 16
 _STRAIN_CHUNK = 32
-DEFAULT_MAX_STRAIN = 1.0       # [-] largest principal stretch - 1
 
 
 def _split_pinched_strain(over: dict, x, poses, trans, betas, bm, faces, **penetration_kwargs) -> tuple[dict, dict]:
@@ -168,7 +168,7 @@ def check_dataset(path, *, body=None, stride: int = 1, max_depth: float = DEFAUL
     """
     import zarr
 
-    from simgen.dataset.execute import quiet_warp
+    from simgen._warp_log import quiet_warp
     from simgen.dataset.groundtruth import SmoothingParams, smooth_garment
     from simgen.dataset.quality import triangle_rest_inverse, triangle_strain
     from simgen.dataset.reader import open_dataset

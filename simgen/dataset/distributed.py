@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import os
 
-from simgen.errors import InputError
+from simgen.errors import GenerationError, InputError
 
 __all__ = ["RayExecutor", "MAX_TASK_RETRIES"]
 
@@ -27,7 +27,8 @@ MAX_TASK_RETRIES = 2
 
 def _run_batch_task(task):
     # Runs in a Ray worker: quiet Warp, then the same function as local execution.
-    from simgen.dataset.execute import quiet_warp, run_batch
+    from simgen._warp_log import quiet_warp
+    from simgen.dataset.execute import run_batch
 
     quiet_warp()
 
@@ -78,7 +79,6 @@ class RayExecutor:
         return len(self._pending)
 
     def next_result(self):
-        from simgen.dataset.generate import GenerationError
 
         ray = self.ray
         ready, _ = ray.wait(list(self._pending), num_returns=1)

@@ -31,11 +31,12 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from simgen._warp_log import quiet_warp
 from simgen.dataset.storage import Location, StoreWriteError
 from simgen.errors import InputError
 
 __all__ = ["Job", "BatchTask", "SimulatedBatch", "run_batch", "simulate_batch_task", "write_batch", "rest_clip",
-           "simulate_jobs", "job_cloth_frames", "SimFailure", "quiet_warp"]
+           "simulate_jobs", "job_cloth_frames", "SimFailure"]
 
 
 @dataclass
@@ -90,15 +91,6 @@ class SimFailure:
 
     key: str
     message: str
-
-
-def quiet_warp() -> None:
-    """Silence Warp's banner and per-module load lines (they would break progress bars)."""
-    import warp as wp
-
-    wp.config.quiet = True  # warp < 1.19
-    if hasattr(wp, "LOG_WARNING") and hasattr(wp.config, "log_level"):
-        wp.config.log_level = wp.LOG_WARNING  # warp >= 1.19
 
 
 def rest_clip(fps: float, name: str = "rest"):
@@ -204,7 +196,7 @@ def _strain_outlier(spec, job: Job, per_frame: dict) -> str | None:
     it). Outliers at body self-intersections, which the check counts apart, are retried too: telling
     them apart needs the body re-posed, a device job this host-side phase leaves to the check.
     """
-    from simgen.dataset.check import DEFAULT_MAX_STRAIN
+    from simgen.dataset.quality import DEFAULT_MAX_STRAIN
 
     if job.kind != "sequence" or not spec.retry_strain_outliers or job.attempt >= spec.max_attempts:
         return None

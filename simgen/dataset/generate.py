@@ -33,14 +33,10 @@ from simgen.dataset.execute import (BatchTask, Job, job_cloth_frames, rest_clip,
 from simgen.dataset.spec import DatasetSpec, load_spec
 from simgen.dataset.storage import FORMAT_VERSION, Location, StoreWriteError
 from simgen.dataset.store import DatasetStore
-from simgen.errors import InputError
+from simgen.errors import GenerationError, InputError
 
 __all__ = ["generate_dataset", "plan_jobs", "load_clips", "StoreReport", "GenerationError", "garment_hash",
            "root_attrs"]
-
-
-class GenerationError(RuntimeError):
-    """A run could not finish (a Ray task failed beyond its retries); the store stays consistent."""
 
 
 @dataclass
@@ -298,7 +294,8 @@ def generate_dataset(spec, out: str | None = None, *, ray: str | None = None, ma
     Raises InputError for bad input, StoreWriteError when the store cannot be written (the store
     stays consistent and resumable), GenerationError when a Ray task fails beyond its retries.
     """
-    from simgen.dataset.execute import _load_body, _load_garment, quiet_warp
+    from simgen._warp_log import quiet_warp
+    from simgen.dataset.execute import _load_body, _load_garment
 
     quiet_warp()
     spec = load_spec(spec)

@@ -8,7 +8,9 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["triangle_rest_inverse", "triangle_strain", "strain_summary", "body_penetration"]
+__all__ = ["triangle_rest_inverse", "triangle_strain", "strain_summary", "body_penetration", "DEFAULT_MAX_STRAIN"]
+
+DEFAULT_MAX_STRAIN = 1.0  # [-] largest principal stretch - 1 of a healthy frame (the check's limit, the retry's trigger)
 
 
 def triangle_rest_inverse(rest, faces) -> np.ndarray:
