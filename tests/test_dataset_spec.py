@@ -67,7 +67,7 @@ def test_tiny_is_small():
     (minimal(solver={"device": "tpu"}), "solver.device"),
     (minimal(solver={"contact_stiffness": 0.0}), "solver.contact_stiffness"),
     (minimal(solver={"constraint_rounds": 0}), "solver.constraint_rounds"),
-    (minimal(solver={"limiter_half_space": 1}), "solver.limiter_half_space"),
+    (minimal(solver={"limiter_half_space": True}), "solver.limiter_half_space"),
     (minimal(solver={"guard_energy": "off"}), "solver.guard_energy"),
     (minimal(solver={"substep": 4}), "solver.substep"),
     (minimal(protocol={"ramp_frames": 0}), "protocol.ramp_frames"),
@@ -195,13 +195,9 @@ def test_self_contact_option_reaches_the_solver_and_only_then_the_store_key():
 
 def test_contact_stiffness_and_constraint_rounds_reach_the_solver():
     default, spec = parse_spec(minimal()), parse_spec(minimal(solver={"contact_stiffness": 1e5,
-                                                                       "constraint_rounds": 2,
-                                                                       "limiter_half_space": True,
-                                                                       "limit_after_projection": True}))
+                                                                       "constraint_rounds": 2}))
     assert default.solver_config().solver.contact.stiffness == 1e4
     solver = spec.solver_config().solver
     assert solver.contact.stiffness == 1e5 and solver.constraint_rounds == 2
-    assert solver.limiter_half_space and solver.limit_after_projection
-    assert not default.solver_config().solver.limiter_half_space
     assert solver.contact.margin == default.solver_config().solver.contact.margin  # the rest unchanged
     assert spec.content_hash("tshirt_1k") != default.content_hash("tshirt_1k")

@@ -109,8 +109,6 @@ SOLVER_FIELDS: dict[str, tuple[type, float | None, bool]] = {
     "strain_limit": (float, 0.0, False),
     "strain_limit_iterations": (int, 1, True),
     "constraint_rounds": (int, 1, True),
-    "limiter_half_space": (bool, None, True),
-    "limit_after_projection": (bool, None, True),
     "contact_stiffness": (float, 0.0, False),   # ContactParams.stiffness [J/m^3]
 }
 

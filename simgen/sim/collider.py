@@ -65,8 +65,6 @@ def collider_kernels(scalar) -> SimpleNamespace:
         pinch_distance: float,
         depth_before: wp.array(dtype=scalar),
         count_inside: wp.array(dtype=wp.int32),
-        moved: wp.array(dtype=vec3),
-        mark_moved: int,
     ):
         i = wp.tid()
         inst = vertex_instance[i]
@@ -85,8 +83,6 @@ def collider_kernels(scalar) -> SimpleNamespace:
             return
         # Onto the surface (plus offset) along the outward normal of the closest feature.
         x[i] = x[i] + (offset - d) * n
-        if mark_moved != 0:
-            moved[i] = n
         # Remove the velocity component that moves into the body (relative to the body's surface).
         v_body = vec3(wp.mesh_eval_velocity(mesh, face, bu, bv))
         vn = wp.dot(v[i] - v_body, n)
@@ -271,8 +267,7 @@ class BodyCollider:
                              f"but the body has {self.num_body_faces}: build the model on the body it is simulated with")
 
     def project(self, model, state, *, offset: float = 0.0, query_distance: float = 0.05,
-                pinch_distance: float = ContactParams.pinch_distance, depth=None, count=None,
-                moved=None) -> None:
+                pinch_distance: float = ContactParams.pinch_distance, depth=None, count=None) -> None:
         """Push every free cloth vertex inside its body (signed distance < 0) onto the surface.
 
         model: the ClothModel; state: its ClothState, modified in place: the position moves along
@@ -282,9 +277,7 @@ class BodyCollider:
         (:class:`ContactParams`; with :attr:`part_masks` and a model with home parts, cloth on its own
         part is not pushed out of another part pressing into it). Optional outputs, (I,) per instance, accumulated with max/add:
         depth [m] (model scalar) of the deepest vertex before projection, count (int32) of vertices
-        found inside (pinned ones included, though they are not moved). moved: optional (V,) vec3 of
-        the model's scalar, set to the outward unit normal along which this call moved a vertex (left
-        as it is for the others: cleared by the caller).
+        found inside (pinned ones included, though they are not moved).
         """
         self.check_model(model)
         if depth is None:
@@ -293,8 +286,7 @@ class BodyCollider:
             count = wp.zeros(model.num_instances, dtype=wp.int32, device=model.device)
         wp.launch(collider_kernels(model.scalar).project, dim=model.num_vertices, device=model.device, inputs=[
             state.positions, state.velocities, model.vertex_instance, model.vertex_pinned, self.mesh_ids,
-            offset, query_distance, *part_inputs(model, self.part_masks, pinch_distance), depth, count,
-            moved if moved is not None else state.velocities, int(moved is not None)])
+            offset, query_distance, *part_inputs(model, self.part_masks, pinch_distance), depth, count])
 
     def penetration(self, model, positions, *, query_distance: float = 0.05,
                     pinch_distance: float = ContactParams.pinch_distance) -> tuple[np.ndarray, np.ndarray]:

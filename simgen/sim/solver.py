@@ -102,14 +102,6 @@ class SolverConfig:
       each substep (both project onto a constraint set: each undoes part of the other, and
       alternating approaches a state that meets both; the body projection always comes last, so
       the output is never inside the body). 1 (default) runs each once.
-    limiter_half_space: from the second round on, the limiter lets vertices the projection placed
-      slide along the body or leave it, but not go back in (False, default: it moves them like any
-      other vertex and the next projection undoes part of its work). Meets both constraints on a
-      sphere cap (tests) but measured worse on the device's thesis-tshirt stores (BENCHMARKS.md,
-      2026-11-25: 8 strain failures in 48 sequences against 0 without it), so it is off.
-    limit_after_projection: one more limiter pass after the last projection, with the half-space
-      rule if that is on (False by default): the output then meets the strain limit as far as the
-      limiter converges, and vertices that pass moves can end slightly inside the body.
     guard: check each step for divergence and retry it as two half steps, up to ``max_retries``
       levels. max_speed [m/s]: a vertex faster than this marks divergence. divergence_ratio: E may
       rise at most this many times the first Newton model's predicted decrease.
@@ -140,8 +132,6 @@ class SolverConfig:
     project: bool = True
     projection_offset: float = 0.0
     constraint_rounds: int = 1
-    limiter_half_space: bool = False
-    limit_after_projection: bool = False
     guard: bool = True
     max_retries: int = 4
     max_speed: float = 50.0
@@ -347,7 +337,6 @@ class ImplicitSolver:
         self._depth = wp.zeros(ni, dtype=T.scalar, device=dev)
         self._depth_max = wp.zeros(ni, dtype=T.scalar, device=dev)
         self._inside = wp.zeros(ni, dtype=wp.int32, device=dev)
-        self._projected = wp.zeros(m.num_vertices, dtype=T.vec3, device=dev)
         self._counts = dict(steps=0, substeps=0, newton_iterations=0, retries=0, unresolved=0)
         # Per instance: substeps it failed (retried) and steps left unresolved, since reset_stats.
         self._instance_retries = np.zeros(ni, dtype=np.int64)
@@ -465,26 +454,17 @@ class ImplicitSolver:
             projecting = body is not None and cfg.project
             # Only the limiter and the projection alternate: a round without both is the same again.
             rounds = cfg.constraint_rounds if projecting and self.strain_limiter is not None else 1
-            limit_last = projecting and self.strain_limiter is not None and cfg.limit_after_projection
-            half_space = (rounds > 1 or limit_last) and cfg.limiter_half_space
-            if half_space:
-                self._projected.zero_()
-            for r in range(rounds):
+            for _ in range(rounds):
                 if self.strain_limiter is not None:
-                    # With the half-space rule, from the second round on what the projection placed on
-                    # the body stays out of it: the limiter slides those vertices along the body.
-                    self.strain_limiter.apply(work, dt / n, outward=self._projected if r > 0 and half_space else None)
+                    self.strain_limiter.apply(work, dt / n)
                 if projecting:
                     self._inside.zero_()
                     self._depth.zero_()
                     body.project(self.model, work, offset=cfg.projection_offset,
                                  query_distance=cfg.contact.query_distance,
-                                 pinch_distance=cfg.contact.pinch_distance, depth=self._depth, count=self._inside,
-                                 moved=self._projected if half_space else None)
+                                 pinch_distance=cfg.contact.pinch_distance, depth=self._depth, count=self._inside)
                     wp.launch(self.kernels.keep_max, dim=self.model.num_instances, device=self.model.device,
                               inputs=[self._depth, self._depth_max])
-            if limit_last:
-                self.strain_limiter.apply(work, dt / n, outward=self._projected if half_space else None)
             if cfg.floor is not None and cfg.project:
                 project_floor(self.model, work, cfg.floor, cfg.projection_offset)
             if projecting:

@@ -124,16 +124,11 @@ def strain_limit_kernels(scalar) -> SimpleNamespace:
 
     @wp.kernel(enable_backward=False, module=mod)
     def apply_corrections(x: wp.array(dtype=vec3), pinned: wp.array(dtype=wp.int32), dx: wp.array(dtype=vec3),
-                          count: wp.array(dtype=scalar), outward: wp.array(dtype=vec3), moved: wp.array(dtype=vec3)):
+                          count: wp.array(dtype=scalar), moved: wp.array(dtype=vec3)):
         i = wp.tid()
         n = count[i]
         if n > zero and pinned[i] == 0:
             step = dx[i] / n
-            # A vertex on the body (outward normal set) slides along it or leaves it, never back in.
-            normal = outward[i]
-            into = wp.dot(step, normal)
-            if into < zero:
-                step = step - into * normal
             x[i] = x[i] + step
             moved[i] = moved[i] + step
         dx[i] = vec3(zero)
@@ -170,25 +165,20 @@ class StrainLimiter:
         self._dx = wp.zeros(n, dtype=T.vec3, device=dev)
         self._count = wp.zeros(n, dtype=model.scalar, device=dev)
         self._moved = wp.zeros(n, dtype=T.vec3, device=dev)
-        self._no_normal = wp.zeros(n, dtype=T.vec3, device=dev)
         self._kernels = strain_limit_kernels(model.scalar)
 
-    def apply(self, state, h: float | None = None, outward=None) -> None:
+    def apply(self, state, h: float | None = None) -> None:
         """Limit the stretch of ``state.positions`` in place; with h [s], add the displacement / h
-        to ``state.velocities`` (the step the positions came from took h). outward: optional (V,)
-        vec3, the outward unit normal of the body at vertices that lie on it (zero elsewhere; the
-        body projection's output): those vertices may slide along the body or leave it, but the
-        limiter does not pull them back in (a half-space constraint on their corrections)."""
+        to ``state.velocities`` (the step the positions came from took h)."""
         m, k = self.model, self._kernels
         if m.num_triangles == 0:
             return
-        outward = self._no_normal if outward is None else outward
         for _ in range(self.iterations):
             wp.launch(k.triangle_corrections, dim=m.num_triangles, device=m.device,
                       inputs=[state.positions, m.triangles, m.tri_inv_rest, m.vertex_mass, m.vertex_pinned,
                               m.scalar(1.0 + self.limit), self._dx, self._count])
             wp.launch(k.apply_corrections, dim=m.num_vertices, device=m.device,
-                      inputs=[state.positions, m.vertex_pinned, self._dx, self._count, outward, self._moved])
+                      inputs=[state.positions, m.vertex_pinned, self._dx, self._count, self._moved])
         if h is not None:
             wp.launch(k.update_velocity, dim=m.num_vertices, device=m.device,
                       inputs=[state.velocities, self._moved, m.scalar(1.0 / h)])
