@@ -237,7 +237,7 @@ def check_dataset(path, *, body=None, stride: int = 1, max_depth: float = DEFAUL
     # The solver's contact keeps cloth on its own body part where the body intersects itself: the
     # same part labels classify such cloth as at a self-intersection here.
     from simgen.body.parts import face_part_masks, face_parts, vertex_parts
-    from simgen.sim.energies.contact import ContactParams
+    from simgen.params import ContactParams
 
     home_parts = vertex_parts(tpl["skin_weights"]) if tpl is not None else None
     reference = None

@@ -62,7 +62,7 @@ def eval_physics(sources, *, out: Path, lbs: bool = False, split: str | None = N
     from simgen.physics.contact import BodySurface
     from simgen.physics.evaluate import NORMALISATIONS, compare_potentials, evaluate_sequence, write_csv
     from simgen.physics.plot import have_matplotlib, plot_potentials, plot_terms
-    from simgen.sim.energies.contact import ContactParams
+    from simgen.params import ContactParams
 
     if not sources:
         raise InputError("give at least one SOURCE (a simulated .npz or a dataset store)")

@@ -37,7 +37,7 @@ import torch
 
 from simgen.errors import InputError
 from simgen.physics._common import reduce_frames
-from simgen.sim.energies.contact import ContactParams
+from simgen.params import ContactParams
 
 __all__ = ["BodySurface", "BodyDistance", "body_distance", "contact", "contact_per_vertex", "ContactParams",
            "closest_point_triangle", "REGION_INTERIOR"]

@@ -23,8 +23,7 @@ from simgen.errors import InputError
 from simgen.physics._common import like, reduce_frames
 from simgen.physics.contact import BodySurface, body_distance
 from simgen.physics.rest import ClothRest
-from simgen.sim.energies.contact import ContactParams
-from simgen.sim.energies.friction import FrictionParams
+from simgen.params import ContactParams, FrictionParams
 
 __all__ = ["LaggedContact", "friction", "FrictionParams"]
 

@@ -15,7 +15,7 @@ import torch
 
 from simgen.physics._common import like, reduce_frames
 from simgen.physics.rest import ClothRest
-from simgen.sim.energies.gravity import GravityParams
+from simgen.params import GravityParams
 
 __all__ = ["gravity", "GravityParams"]
 

@@ -22,8 +22,7 @@ from simgen.physics.gravity import gravity
 from simgen.physics.inertia import inertia, predict
 from simgen.physics.membrane import membrane
 from simgen.physics.rest import ClothRest
-from simgen.sim.energies.contact import ContactParams
-from simgen.sim.energies.gravity import GravityParams
+from simgen.params import ContactParams, GravityParams
 
 __all__ = ["incremental_potential", "snug_loss", "STATIC_TERMS"]
 

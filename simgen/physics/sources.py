@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from simgen.errors import InputError
-from simgen.sim.energies.contact import ContactParams
+from simgen.params import ContactParams
 
 __all__ = ["GarmentSequence", "load_simulation", "load_dataset_sequences", "contact_params_from"]
 

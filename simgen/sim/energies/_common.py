@@ -16,15 +16,13 @@ T-shirts the energy alone took 0.8 ms of a 1.9 ms membrane launch (BENCHMARKS.md
 """
 
 import functools
-import math
 from types import SimpleNamespace
 
 import warp as wp
 
-from simgen.errors import InputError
 
 __all__ = ["SCALARS", "scalar_types", "module_name", "math_funcs", "check_scalar", "resolve_outputs",
-           "check_penalty_params", "reduce_funcs", "launch_blocked", "REDUCE_BLOCK"]
+           "reduce_funcs", "launch_blocked", "REDUCE_BLOCK"]
 
 SCALARS = (wp.float32, wp.float64)
 
@@ -177,19 +175,3 @@ def resolve_outputs(energy, gradient, hessian):
     """
     values = getattr(hessian, "values", hessian)
     return int(energy is not None), int(gradient is not None), int(values is not None), energy, gradient, values
-
-
-def check_penalty_params(params, label: str, positive: tuple[str, ...], *, above: tuple[str, str]) -> None:
-    """Validate a frozen dataclass of a penalty k * max(margin - d, 0)^power in place: each field in
-    ``positive`` a finite number > 0 (stored as float), power >= 2, and ``above`` = (a, b) with a > b.
-    Raises InputError naming ``label`` and the field."""
-    for name in positive:
-        v = getattr(params, name)
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
-            raise InputError(f"{label} {name} must be a finite number > 0, got {v!r}")
-        object.__setattr__(params, name, float(v))
-    if params.power < 2.0:
-        raise InputError(f"{label} power must be >= 2 (C1 energy, bounded Hessian), got {params.power!r}")
-    a, b = above
-    if getattr(params, a) <= getattr(params, b):
-        raise InputError(f"{label} {a} ({getattr(params, a)}) must exceed the {b} ({getattr(params, b)})")

@@ -52,48 +52,15 @@ sees one continuous surface.
 """
 
 import functools
-from dataclasses import dataclass
 from types import SimpleNamespace
 
 import warp as wp
 
-from simgen.errors import InputError
-from simgen.sim.energies._common import check_penalty_params, module_name, resolve_outputs, scalar_types
+from simgen.params import ContactParams
+from simgen.sim.energies._common import module_name, resolve_outputs, scalar_types
 
 __all__ = ["ContactParams", "ContactFrame", "eval_contact", "update_contact_frame", "contact_funcs",
            "contact_kernels", "part_inputs"]
-
-
-@dataclass(frozen=True)
-class ContactParams:
-    """Body contact penalty k * max(margin - d, 0)^power.
-
-    margin [m]: distance below which the penalty acts (SNUG: 2e-3).
-    stiffness [J/m^power]: k (SNUG: 250 J/m^3; solver default 1e4 J/m^3, see the module doc).
-    power [-]: p >= 2 so that the energy is C1 and its Hessian bounded (SNUG: 3).
-    query_distance [m]: how far the closest-point query looks; a vertex deeper inside the body than
-      this gets no contact force, so it must exceed the deepest expected penetration.
-    pinch_distance [m]: a cloth vertex inside another body part and within this distance of its own
-      part keeps to its own part (where the body intersects itself; see the module doc). Used only
-      when body part labels are given; must exceed the margin.
-    """
-
-    margin: float = 2.0e-3
-    stiffness: float = 1.0e4
-    power: float = 3.0
-    query_distance: float = 0.05
-    pinch_distance: float = 5.0e-3
-
-    def __post_init__(self) -> None:
-        check_penalty_params(self, "contact", ("margin", "stiffness", "power", "query_distance", "pinch_distance"),
-                             above=("query_distance", "margin"))
-        if self.pinch_distance <= self.margin:
-            raise InputError(f"contact pinch_distance ({self.pinch_distance}) must exceed the margin ({self.margin})")
-
-    @classmethod
-    def snug(cls) -> "ContactParams":
-        """SNUG's training values: margin 2 mm, k = 250 J/m^3, p = 3."""
-        return cls(margin=2.0e-3, stiffness=250.0, power=3.0)
 
 
 @functools.cache

@@ -23,47 +23,15 @@ point fixed) makes this an exact potential during one minimisation.
 """
 
 import functools
-import math
-from dataclasses import dataclass
 from types import SimpleNamespace
 
 import warp as wp
 
 from simgen.errors import InputError
+from simgen.params import FrictionParams
 from simgen.sim.energies._common import module_name, resolve_outputs, scalar_types
 
 __all__ = ["FrictionParams", "eval_friction", "friction_kernels"]
-
-
-@dataclass(frozen=True)
-class FrictionParams:
-    """smoothing_velocity eps_v [m/s]: slip speeds below it are treated as (smoothed) sticking.
-
-    IPC's default 1e-3 m/s: well below visible sliding speeds, and with h = 1/300 s the sticking
-    zone (eps_v h = 3.3e-6 m) still spans ~30 float32 ulps of a 1 m coordinate.
-
-    max_normal_load [-]: cap on the lagged normal force lambda, in multiples of the vertex's own
-    weight m g (inf: no cap). The penalty's normal force is the real contact load in resting
-    contact (a T-shirt on the open body: median 3x, 99th percentile 25x the vertex weight on the
-    shoulders), but where cloth is pinched between body parts that the skinned body drives into
-    each other (hem between swinging thighs, armpits) it reaches 100-15,000x; lagged into friction
-    that glues the cloth to the moving limb, which drags it into the pinch, which raises lambda
-    further, and the T-shirt was pulled off the body within a second of ``walk_fast``. 20 leaves
-    resting contact nearly untouched and bounds the friction drag to 0.3 x 20 g = 59 m/s^2.
-    """
-
-    smoothing_velocity: float = 1.0e-3
-    max_normal_load: float = 20.0
-
-    def __post_init__(self) -> None:
-        v = self.smoothing_velocity
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
-            raise InputError(f"friction smoothing_velocity must be a finite number > 0, got {v!r}")
-        object.__setattr__(self, "smoothing_velocity", float(v))
-        c = self.max_normal_load
-        if isinstance(c, bool) or not isinstance(c, (int, float)) or math.isnan(c) or c <= 0:
-            raise InputError(f"friction max_normal_load must be a number > 0 (inf: no cap), got {c!r}")
-        object.__setattr__(self, "max_normal_load", float(c))
 
 
 @functools.cache

@@ -1,29 +1,14 @@
 """Gravity potential (SNUG eq. 5.11): E = -sum_v m_v g . x_v, gradient -m_v g, zero Hessian."""
 
 import functools
-import math
-from dataclasses import dataclass
 from types import SimpleNamespace
 
 import warp as wp
 
-from simgen.errors import InputError
+from simgen.params import GravityParams
 from simgen.sim.energies._common import launch_blocked, module_name, reduce_funcs, resolve_outputs, scalar_types
 
 __all__ = ["GravityParams", "eval_gravity", "gravity_kernels"]
-
-
-@dataclass(frozen=True)
-class GravityParams:
-    """gravity [m/s^2]: the acceleration vector; DESIGN.md's world is Y-up, (0, -9.81, 0)."""
-
-    gravity: tuple[float, float, float] = (0.0, -9.81, 0.0)
-
-    def __post_init__(self) -> None:
-        g = tuple(float(c) for c in self.gravity)
-        if len(g) != 3 or not all(math.isfinite(c) for c in g):
-            raise InputError(f"gravity must be 3 finite numbers, got {self.gravity!r}")
-        object.__setattr__(self, "gravity", g)
 
 
 @functools.cache

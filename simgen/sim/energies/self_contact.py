@@ -34,7 +34,8 @@ import numpy as np
 import warp as wp
 
 from simgen.errors import InputError
-from simgen.sim.energies._common import check_penalty_params, module_name, resolve_outputs, scalar_types
+from simgen.params import check_penalty_params
+from simgen.sim.energies._common import module_name, resolve_outputs, scalar_types
 from simgen.sim.energies.contact import contact_funcs
 
 __all__ = ["SelfContactParams", "SelfContactSet", "eval_self_contact", "self_contact_kernels", "INSTANCE_SPACING"]
