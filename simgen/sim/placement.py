@@ -20,11 +20,9 @@ it; three measures per frame tell:
 
 The check fails a sequence with a frame where the support has dropped more than
 :data:`MAX_SUPPORT_DROP` below its LBS position, fewer than :data:`MIN_BODY_SHARE` of the vertices are on the body, or a
-vertex is more than :data:`FLOOR_TOLERANCE` below the floor. The limits were set on simulated
-sequences (docs/sim.md, "Is the garment on the body"): the largest drop of a garment that stayed on
-was 8.1 cm (the dress lagging behind the slim body in walk_fast and out of a squat, recovering
-within a second); a waistband pushed down to the hip joints drops 12.6 cm, a garment on the floor
-far more.
+vertex is more than :data:`FLOOR_TOLERANCE` below the floor. The limits lie between what
+garments that stayed on reached on the GPU and a waistband pushed down to the hip joints (docs/sim.md,
+"Is the garment on the body"; BENCHMARKS.md).
 """
 
 from __future__ import annotations
