@@ -25,7 +25,7 @@ from simgen.garment.skinning import lbs
 from simgen.garment.waistband import band_vertices
 from simgen.sim import BodyCollider, ClothModel, ImplicitSolver, SolverConfig
 from simgen.sim.energies import ContactParams, GravityParams
-from simgen.sim.placement import (MAX_SUPPORT_DROP, MIN_BODY_SHARE, garment_reference, placement_problems,
+from simgen.sim.placement import (MIN_BODY_SHARE, garment_reference, placement_problems,
                                   placement_row)
 
 wp.config.quiet = True
