@@ -9,7 +9,7 @@ from simgen.garment.garment import Garment
 from simgen.sim import MATERIALS, ClothModel, ClothModelBuilder, Material, get_material
 from simgen.sim.energies import eval_bending, eval_gravity, eval_membrane
 from simgen.sim.energies import reference as ref
-from simgen.sim.topology import build_bsr_pattern, extract_hinges
+from simgen.topology import build_bsr_pattern, extract_hinges
 
 wp.config.quiet = True
 

@@ -66,7 +66,7 @@ class Dataset:
     @property
     def material(self):
         """The :class:`simgen.sim.Material` every sequence was simulated with."""
-        from simgen.sim.materials import Material
+        from simgen.materials import Material
 
         return Material.from_dict(self.attrs["material"])
 

@@ -586,7 +586,7 @@ def parse_spec(doc: dict, *, source: str = "<dict>", base_dir: str | Path = ".",
 
 def _validate_scalars(spec: DatasetSpec, where: str) -> None:
     """Checks shared by the file and the command-line overrides."""
-    from simgen.sim.materials import MATERIALS, Material
+    from simgen.materials import MATERIALS, Material
 
     dev = spec.device
     if not (dev in ("auto", "cpu", "cuda") or re.fullmatch(r"cuda:\d+", dev or "")):

@@ -79,7 +79,7 @@ def eval_physics(sources, *, out: Path, lbs: bool = False, split: str | None = N
     if max_sequences is not None and max_sequences < 1:
         raise InputError(f"--max-sequences must be at least 1, got {max_sequences}")
     if material is not None:
-        from simgen.sim.materials import get_material
+        from simgen.materials import get_material
 
         get_material(material)
     dev = torch.device("cuda" if device == "cuda" else (device or "cpu"))

@@ -9,7 +9,7 @@ holds the two equal), or copied from a ClothModel with :meth:`ClothRest.from_mod
   the plane-stress Lame parameters times thickness, lambda h and mu h [N/m];
 - lumped vertex masses [kg] (V,): a third of each adjacent triangle's area times the area density;
 - hinges (E, 4) (interior edges x0-x1 with wings x2, x3, the solver's
-  :func:`simgen.sim.topology.extract_hinges`), the hinge stiffness k_bend l^2 / (4 (a1 + a2)) [J] with
+  :func:`simgen.topology.extract_hinges`), the hinge stiffness k_bend l^2 / (4 (a1 + a2)) [J] with
   the REST edge length l and rest areas a1, a2 (SNUG eq. 5.10's k_scale), and the rest angle [rad]:
   the template's dihedral angle ("template", the solver's default) or 0 ("flat", SNUG);
 - the Coulomb friction coefficient of the material (friction term).
@@ -119,8 +119,8 @@ class ClothRest:
         :class:`simgen.sim.Material` or a preset name; bending_rest: "template" (the solver's
         default) or "flat" (SNUG). Geometry is computed in float64 and stored in ``dtype``.
         """
-        from simgen.sim.materials import get_material
-        from simgen.sim.topology import extract_hinges
+        from simgen.materials import get_material
+        from simgen.topology import extract_hinges
 
         material = get_material(material)
         if bending_rest not in BENDING_REST_MODES:

@@ -108,7 +108,7 @@ def load_simulation(path, *, body=None, material=None) -> GarmentSequence:
     from simgen.garment.library import load_garment
     from simgen.motion.library import load_motion
     from simgen.motion.ops import poses_at
-    from simgen.sim.materials import Material, get_material
+    from simgen.materials import Material, get_material
 
     path = Path(path)
     if not path.is_file():
@@ -175,7 +175,7 @@ def load_dataset_sequences(path, *, split: str | None = None, body=None, materia
         raise InputError(f"reading dataset stores needs simgen.dataset ({exc})") from None
     from simgen.garment.garment import Garment
     from simgen.garment.library import load_garment
-    from simgen.sim.materials import get_material
+    from simgen.materials import get_material
 
     ds = open_dataset(path)
     b = ds.load_body(body) if hasattr(ds, "load_body") else _resolve_body(body)

@@ -9,13 +9,14 @@
     results = simulate_batch("tshirt", body_model, [SimulationJob("walk", betas), ...])  # N in one system
 """
 
-from simgen.sim.materials import MATERIALS, Material, get_material
+from simgen.materials import MATERIALS, Material, get_material
 from simgen.sim.model import ClothModel, ClothModelBuilder, ClothState
 from simgen.sim.energies import ContactParams, FrictionParams, GravityParams
 from simgen.sim.collider import BodyCollider
 from simgen.sim.linear import BlockJacobiPCG
-from simgen.sim.solver import ImplicitSolver, SolverConfig, SolverDivergedError
-from simgen.sim.driver import (FRAME_STAT_KEYS, SimulationConfig, SimulationFailure, SimulationJob, SimulationResult,
+from simgen.sim.config import SimulationConfig, SolverConfig
+from simgen.sim.solver import ImplicitSolver, SolverDivergedError
+from simgen.sim.driver import (FRAME_STAT_KEYS, SimulationFailure, SimulationJob, SimulationResult,
                                simulate, simulate_batch)
 
 __all__ = [

@@ -21,7 +21,7 @@ import numpy as np
 import warp as wp
 
 from simgen.errors import InputError
-from simgen.sim.energies._common import module_name, scalar_types
+from simgen.sim.warp_toolkit import module_name, scalar_types
 from simgen.sim.energies.contact import ContactParams, contact_funcs, part_inputs
 
 __all__ = ["BodyCollider", "collider_kernels"]

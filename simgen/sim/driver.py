@@ -23,14 +23,8 @@ moving linearly). The solver's projection (``SolverConfig.project``) pushes any 
 the body back onto it after every step, so output frames are free of penetration except where the
 posed body intersects itself.
 
-Self-intersection rule: a cloth vertex inside the body (by the generalised winding number, > 0.5)
-counts as *at a body self-intersection* when (a) its closest body point, moved
-``self_intersection_probe`` (2 mm) outward along the contact normal, is still inside the body: a
-closest surface buried in another body part (arm in torso at the armpit, thigh in thigh at the
-crotch) cannot be exited along its normal, and the projection cannot resolve such vertices; or (b)
-the solver's contact, with its body part rule, sees it outside: cloth lying on its own part where
-another part presses into that one (a forearm sunk into the belly) is kept on its own part and
-so lies inside the other (:mod:`simgen.sim.energies.contact`).
+The per-frame statistics (penetration, body self-intersections, whether the garment is on the
+body) are taken by :class:`simgen.sim.frame_stats.FrameStats`.
 """
 
 from __future__ import annotations
@@ -38,7 +32,7 @@ from __future__ import annotations
 import json
 import math
 import time
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -47,102 +41,16 @@ import warp as wp
 from simgen.errors import InputError
 from simgen.rotations import quat_slerp
 from simgen.sim.collider import BodyCollider
-from simgen.sim.energies.contact import contact_funcs, part_inputs
-from simgen.sim.materials import Material, get_material
+from simgen.sim.frame_stats import FRAME_STAT_KEYS, FrameStats, stack_stats
+from simgen.materials import Material, get_material
 from simgen.sim.model import ClothModel
-from simgen.sim.solver import ImplicitSolver, SolverConfig
+from simgen.sim.config import SimulationConfig
+from simgen.sim.solver import ImplicitSolver
 
 __all__ = ["SimulationConfig", "SimulationResult", "SimulationJob", "SimulationFailure", "simulate",
            "simulate_batch", "PHASES", "FRAME_STAT_KEYS"]
 
 PHASES = ("relax", "ramp", "rest", "animate")
-
-# Per-frame statistics (each an array over frames in SimulationResult.stats / protocol_stats).
-FRAME_STAT_KEYS = (
-    "max_depth",                  # [m] deepest cloth vertex inside the body at the output frame (0 if none)
-    "max_depth_regular",          # [m] the same over vertices not at a body self-intersection
-    "inside_count",               # vertices inside the body at the output frame
-    "inside_share",               # inside_count / V
-    "self_intersection_count",    # inside vertices at a body self-intersection (module doc's rule)
-    "depth_before_projection",    # [m] deepest vertex the solver's projections found over the frame
-    "retries",                    # half-step retries of the solver's divergence guard
-    "unresolved",                 # steps still failing the guard after every retry (finite)
-    "newton_iterations",          # Newton iterations over the frame's substeps
-    "cg_iterations",              # PCG iterations over the frame's substeps
-    "step_time",                  # [s] the frame's stepping (posing, refits, solver), synchronised
-    "wall_time",                  # [s] host wall time of the frame, statistics included
-    "body_share",                 # share of the garment's vertices within 5 cm of the body (simgen.sim.placement)
-    "lbs_offset",                 # [m] median distance of the garment's support from its skinned (LBS) position
-    "support_drop",               # [m] median sag of the support below its skinned position (along the body's up)
-    "min_height",                 # [m] the lowest garment vertex (the floor: SolverConfig.floor)
-)
-
-
-@dataclass(frozen=True)
-class SimulationConfig:
-    """Options of :func:`simulate` (SI units).
-
-    fps [1/s]: output frame rate; None takes the clip's. The frame time step is 1 / fps.
-    substeps: solver steps per frame (10 at 30 fps: dt = 3.33 ms, the thesis's ARCSim step); the body
-      is re-posed from slerped joint rotations before each.
-    solver: the :class:`SolverConfig`; default: one Newton iteration, projection 0.2 mm outside the
-      body so projected vertices count as outside.
-    material: preset name or :class:`Material`; None takes the garment's default_material, else cotton.
-    material_overrides: Material fields to replace, e.g. ``{"area_density": 0.25}``.
-    relax_frames, ramp_frames (>= 1), rest_frames: the start protocol's frame counts (module doc).
-    self_intersection_probe [m]: outward offset of the self-intersection test (module doc).
-    query_distance [m]: deepest penetration the statistics can see.
-    record_body: keep the posed body vertices of every output frame (SimulationResult.body_vertices).
-    device: Warp device (None: Warp's default).
-    cuda_graph: on CUDA, replay each frame's substeps as one captured CUDA graph (see
-      :func:`simulate_batch`); the CPU always runs them eagerly.
-    """
-
-    fps: float | None = None
-    substeps: int = 10
-    solver: SolverConfig = field(default_factory=lambda: SolverConfig(projection_offset=2.0e-4))
-    material: str | Material | None = None
-    material_overrides: dict = field(default_factory=dict)
-    relax_frames: int = 15
-    ramp_frames: int = 30
-    rest_frames: int = 15
-    self_intersection_probe: float = 2.0e-3
-    query_distance: float = 0.05
-    record_body: bool = False
-    device: str | None = None
-    cuda_graph: bool = True
-
-    def __post_init__(self) -> None:
-        if self.fps is not None and not (isinstance(self.fps, (int, float)) and not isinstance(self.fps, bool)
-                                         and math.isfinite(self.fps) and self.fps > 0):
-            raise InputError(f"simulation fps must be a finite number > 0 or None, got {self.fps!r}")
-        for name, low in (("substeps", 1), ("relax_frames", 0), ("ramp_frames", 1), ("rest_frames", 0)):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int) or v < low:
-                raise InputError(f"simulation {name} must be an integer >= {low}, got {v!r}")
-        if not isinstance(self.solver, SolverConfig):
-            raise InputError(f"simulation solver must be a SolverConfig, got {type(self.solver).__name__}")
-        for name in ("self_intersection_probe", "query_distance"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and v > 0):
-                raise InputError(f"simulation {name} must be a finite number > 0, got {v!r}")
-        if not isinstance(self.material_overrides, dict):
-            raise InputError("simulation material_overrides must be a dict of Material fields")
-
-    def resolve_material(self, garment=None) -> Material:
-        """The Material this config simulates (preset or given, defaults from the garment, overrides applied)."""
-        name = self.material
-        if name is None:
-            name = ((getattr(garment, "metadata", None) or {}).get("default_material")) or "cotton"
-        material = get_material(name)
-        if self.material_overrides:
-            known = set(Material.__dataclass_fields__)
-            bad = sorted(set(self.material_overrides) - known)
-            if bad:
-                raise InputError(f"unknown material fields {bad}; fields are: {', '.join(sorted(known))}")
-            material = replace(material, **self.material_overrides)
-        return material
-
 
 @dataclass
 class SimulationResult:
@@ -208,10 +116,7 @@ class SimulationResult:
         return path
 
 
-# ------------------------------------------------------------------------------------ statistics
-_body_contact = contact_funcs(wp.float32).body_contact
-
-
+# ------------------------------------------------------------------------------------ kernels
 @wp.kernel(enable_backward=False)
 def _hold_instances(pinned_before: wp.array(dtype=wp.int32), vertex_instance: wp.array(dtype=wp.int32),
                     held: wp.array(dtype=wp.int32), pinned: wp.array(dtype=wp.int32), v: wp.array(dtype=wp.vec3)):
@@ -233,146 +138,6 @@ def _select_instances(src_x: wp.array(dtype=wp.vec3), src_v: wp.array(dtype=wp.v
         x[i] = src_x[i]
         v[i] = src_v[i]
 
-
-@wp.kernel(enable_backward=False)
-def _classify_inside(
-    x: wp.array(dtype=wp.vec3),
-    vertex_instance: wp.array(dtype=wp.int32),
-    winding_meshes: wp.array(dtype=wp.uint64),
-    query_distance: float,
-    probe: float,
-    vertex_part: wp.array(dtype=wp.int32),
-    part_masks: wp.array(dtype=wp.int32),
-    use_parts: int,
-    pinch_distance: float,
-    distance: wp.array(dtype=wp.float32),
-    depth: wp.array(dtype=wp.float32),
-    inside: wp.array(dtype=wp.int32),
-    self_hit: wp.array(dtype=wp.int32),
-):
-    # distance[i] = unsigned distance to the body surface (query_distance where farther); depth[i]
-    # = that distance if inside, else 0; self_hit[i] = 1 if inside at a self-intersection.
-    # Inside/outside by the generalised winding number, which stays right where body parts
-    # overlap (a normal-based sign there reads the other part's outside).
-    i = wp.tid()
-    distance[i] = query_distance
-    depth[i] = 0.0
-    inside[i] = 0
-    self_hit[i] = 0
-    xi = x[i]
-    winding_mesh = winding_meshes[vertex_instance[i]]
-    q = wp.mesh_query_point_sign_winding_number(winding_mesh, xi, query_distance, 2.0, 0.5)
-    if not q.result:
-        return
-    p = wp.mesh_eval_position(winding_mesh, q.face, q.u, q.v)
-    d = wp.length(p - xi)
-    distance[i] = d
-    if q.sign > 0.0:
-        return
-    depth[i] = d
-    inside[i] = 1
-    n = wp.vec3(0.0)
-    if d > 1.0e-9:
-        n = (p - xi) / d
-    else:
-        a = wp.mesh_get_point(winding_mesh, q.face * 3 + 0)
-        b = wp.mesh_get_point(winding_mesh, q.face * 3 + 1)
-        c = wp.mesh_get_point(winding_mesh, q.face * 3 + 2)
-        n = wp.normalize(wp.cross(b - a, c - a))
-    w = wp.mesh_query_point_sign_winding_number(winding_mesh, p + probe * n, query_distance + probe, 2.0, 0.5)
-    if w.result and w.sign < 0.0:
-        self_hit[i] = 1
-    elif use_parts != 0:
-        found, dc, nc, fc, uc, vc, own = _body_contact(winding_mesh, part_masks, vertex_part[i], xi, query_distance,
-                                                  pinch_distance)
-        if found != 0 and dc >= 0.0:
-            self_hit[i] = 1
-
-
-class _FrameStats:
-    """Per-frame statistics of every instance: penetration, and whether the garment is on the body
-    (:mod:`simgen.sim.placement`) at the output frame."""
-
-    def __init__(self, model: ClothModel, collider: BodyCollider, config: SimulationConfig, wbody, garment,
-                 body) -> None:
-        from simgen.sim.placement import ON_BODY_DISTANCE, garment_reference
-
-        dev = model.device
-        self.model, self.collider, self.config, self.wbody = model, collider, config, wbody
-        n = model.num_vertices
-        self.distance = wp.zeros(n, dtype=wp.float32, device=dev)
-        self.depth = wp.zeros(n, dtype=wp.float32, device=dev)
-        self.inside = wp.zeros(n, dtype=wp.int32, device=dev)
-        self.self_hit = wp.zeros(n, dtype=wp.int32, device=dev)
-        # The collider's meshes lack winding-number support; a second BVH per instance on the same
-        # points adds it and is refit only when statistics are taken.
-        nv = collider.num_body_vertices
-        self.winding_meshes = [
-            wp.Mesh(points=collider.points[k * nv:(k + 1) * nv], indices=collider.faces, support_winding_number=True)
-            for k in range(collider.num_instances)]
-        self.winding_ids = wp.array([m.id for m in self.winding_meshes], dtype=wp.uint64, device=dev)
-        self.starts = np.asarray(model.vertex_start)
-        self.query_distance = max(float(config.query_distance), ON_BODY_DISTANCE)
-        # The garment's LBS positions: its template on each instance's shape, posed on the device by
-        # the body's own skinning kernel with the garment's weights.
-        self.reference = garment_reference(garment, body)
-        self.template = np.asarray(garment.vertices, dtype=np.float64)
-        ni, nvg = model.num_instances, len(self.template)
-        self.lbs_rest = wp.zeros((ni, nvg), dtype=wp.vec3, device=dev)
-        self.lbs_rest_up = wp.zeros((ni, nvg), dtype=wp.vec3, device=dev)
-        self.lbs = wp.zeros((ni, nvg), dtype=wp.vec3, device=dev)
-        self.lbs_up = wp.zeros((ni, nvg), dtype=wp.vec3, device=dev)
-        self.skin_joint = wp.array(self.reference.skin_joint, dtype=wp.int32, device=dev)
-        self.skin_weight = wp.array(self.reference.skin_weight.astype(np.float32), dtype=wp.float32, device=dev)
-        self.betas = None
-
-    def measure(self, positions: wp.array, betas: np.ndarray) -> list[dict]:
-        """One dict per instance (keys: the penetration and placement entries of FRAME_STAT_KEYS);
-        betas (N, B): each instance's body shape now."""
-        from simgen.body._warp_kernels import skinning_kernel
-        from simgen.sim.placement import placement_row
-
-        for m in self.winding_meshes:
-            m.refit()
-        cfg, model = self.config, self.model
-        wp.launch(_classify_inside, dim=model.num_vertices, device=model.device,
-                  inputs=[positions, model.vertex_instance, self.winding_ids, self.query_distance,
-                          float(cfg.self_intersection_probe),
-                          *part_inputs(model, self.collider.part_masks, cfg.solver.contact.pinch_distance),
-                          self.distance, self.depth, self.inside, self.self_hit])
-        if self.betas is None or not np.array_equal(self.betas, betas):
-            self.betas = np.array(betas, dtype=np.float64)
-            rest = self.reference.rest_vertices(self.template, self.betas)
-            self.lbs_rest.assign(rest.astype(np.float32))
-            self.lbs_rest_up.assign((rest + np.array([0.0, 1.0, 0.0])).astype(np.float32))
-        for rest, out in ((self.lbs_rest, self.lbs), (self.lbs_rest_up, self.lbs_up)):
-            wp.launch(skinning_kernel, dim=out.shape, device=model.device,
-                      inputs=[rest, self.wbody.transforms, self.skin_joint, self.skin_weight], outputs=[out])
-        x, lbs = positions.numpy(), self.lbs.numpy()
-        up = self.lbs_up.numpy() - lbs
-        dist, depth, inside, self_hit = (a.numpy() for a in (self.distance, self.depth, self.inside, self.self_hit))
-        rows = []
-        for k, (a, b) in enumerate(zip(self.starts[:-1], self.starts[1:])):
-            d, ins, sh = depth[a:b], inside[a:b], self_hit[a:b]
-            regular = (ins != 0) & (sh == 0)
-            rows.append(dict(
-                max_depth=float(d.max(initial=0.0)),
-                max_depth_regular=float(d[regular].max(initial=0.0)),
-                inside_count=int(ins.sum()),
-                inside_share=float(ins.sum()) / max(b - a, 1),
-                self_intersection_count=int(sh.sum()),
-                **placement_row(x[a:b], lbs[k], up[k], dist[a:b], self.reference.support),
-            ))
-        return rows
-
-
-def _stack_stats(rows: list[dict]) -> dict:
-    out = {}
-    for k in FRAME_STAT_KEYS:
-        dtype = np.int64 if k in ("inside_count", "self_intersection_count", "retries", "unresolved",
-                                  "newton_iterations", "cg_iterations") else np.float64
-        out[k] = np.array([r[k] for r in rows], dtype=dtype)
-    return out
 
 
 # ------------------------------------------------------------------------------------ inputs
@@ -574,7 +339,9 @@ def simulate_batch(garment, body, jobs, config: SimulationConfig | None = None, 
     x0 = (np.asarray(garment.vertices, dtype=np.float64)[None] + trans0[:, None]).astype(np.float32)
     state.positions.assign(x0.reshape(-1, 3))
     state.velocities.zero_()
-    stats_probe = _FrameStats(model, collider, cfg, wbody, garment, body)
+    stats_probe = FrameStats(model, collider, wbody, garment, body, query_distance=cfg.query_distance,
+                             self_intersection_probe=cfg.self_intersection_probe,
+                             pinch_distance=cfg.solver.contact.pinch_distance)
     initial = stats_probe.measure(state.positions, np.zeros((N, nb)))
     if any(r["inside_count"] for r in initial):
         # The garment must never start inside the body: project what a bad template left inside.
@@ -791,7 +558,7 @@ def simulate_batch(garment, body, jobs, config: SimulationConfig | None = None, 
         if i in failures:
             results.append(failures[i])
             continue
-        stats = _stack_stats(out_stats[i])
+        stats = stack_stats(out_stats[i])
         metadata = dict(
             key=keys[i], garment=garment.name, garment_vertices=int(nv), garment_triangles=int(len(garment.faces)),
             body=body.name, body_vertices=int(body.num_vertices), motion=clips[i].name, motion_fps=float(clips[i].fps),
@@ -815,7 +582,7 @@ def simulate_batch(garment, body, jobs, config: SimulationConfig | None = None, 
             fps=fps, dt=h, stats=stats,
             protocol_positions=np.stack(proto_positions[i]) if proto_positions[i] else np.zeros((0, nv, 3), np.float32),
             protocol_phases=np.array(proto_phases, dtype=str),
-            protocol_stats=(_stack_stats(proto_stats[i]) if proto_stats[i]
+            protocol_stats=(stack_stats(proto_stats[i]) if proto_stats[i]
                             else {key: np.zeros(0) for key in FRAME_STAT_KEYS}),
             body_vertices=np.stack(out_body[i]) if cfg.record_body else None,
             body_faces=body_faces,

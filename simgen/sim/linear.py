@@ -29,7 +29,7 @@ block, a thread per instance: each instance's beta and convergence test, then (a
 instances still running) the iteration count and the all-done flag.
 The recurrence for q is exact in exact arithmetic (H is linear); in float32 it drifts from H p by
 round-off only, far below the 1e-3 tolerance the solver uses. Reductions are segmented block
-reductions (simgen.sim.energies._common.reduce_funcs): a block of ``REDUCE_BLOCK`` vertices sums
+reductions (simgen.sim.warp_toolkit.reduce_funcs): a block of ``REDUCE_BLOCK`` vertices sums
 its first instance's share in a tile and adds it with one atomic. Per-vertex atomics into one
 scalar per instance serialise on that address: at 64 instances they took 63% of the frame
 (BENCHMARKS.md).
@@ -47,7 +47,7 @@ from types import SimpleNamespace
 import numpy as np
 import warp as wp
 
-from simgen.sim.energies._common import REDUCE_BLOCK, module_name, reduce_block, reduce_funcs, scalar_types
+from simgen.sim.warp_toolkit import REDUCE_BLOCK, module_name, reduce_block, reduce_funcs, scalar_types
 
 __all__ = ["BlockJacobiPCG", "pcg_kernels", "sliced_ell_layout", "REDUCE_BLOCK", "ELL_SLICE"]
 

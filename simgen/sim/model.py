@@ -14,7 +14,7 @@ with the shortcuts :meth:`ClothModel.from_mesh`, :meth:`ClothModel.from_garment`
 :meth:`ClothModel.concatenate`.
 
 The Hessian of the total energy is a 3x3-block BSR matrix with a fixed pattern
-(:mod:`simgen.sim.topology`); :meth:`ClothModel.new_hessian` allocates one, and the energy kernels
+(:mod:`simgen.topology`); :meth:`ClothModel.new_hessian` allocates one, and the energy kernels
 accumulate into its ``values`` through the model's slot maps (``tri_slots``, ``hinge_slots``,
 ``diag_slots``).
 """
@@ -29,9 +29,9 @@ import numpy as np
 import warp as wp
 
 from simgen.errors import InputError
-from simgen.sim.energies._common import check_scalar, scalar_types
-from simgen.sim.materials import Material, get_material
-from simgen.sim.topology import BsrPattern, build_bsr_pattern, extract_hinges
+from simgen.sim.warp_toolkit import check_scalar, scalar_types
+from simgen.materials import Material, get_material
+from simgen.topology import BsrPattern, build_bsr_pattern, extract_hinges
 
 if TYPE_CHECKING:
     from simgen.garment.waistband import Attachment
@@ -73,7 +73,7 @@ class InstanceSpec:
 
     vertices [m], shape (V, 3): rest (template) positions, also the initial state.
     faces, int shape (F, 3); hinges, int shape (E, 4), hinge_faces, int shape (E, 2) (see
-    :func:`simgen.sim.topology.extract_hinges`).
+    :func:`simgen.topology.extract_hinges`).
     material: its :class:`Material`. pinned, bool shape (V,). bending_rest: "template" or "flat".
     body_part: int shape (V,), each vertex's home body part (index into
     :data:`simgen.body.parts.BODY_PARTS`), or None (the body contact's part rule stays off).
@@ -240,7 +240,7 @@ class ClothModel:
     - attach_vertex, attach_face, int32 (A,); attach_bary (A,) vec3; attach_offset [m] (A,) vec3;
       attach_stiffness [N/m] (A,): the attached vertices (num_attachments, A) and their points on
       the body (:mod:`simgen.sim.energies.attachment`).
-    - Hessian pattern (3x3 blocks, see :class:`simgen.sim.topology.BsrPattern`): bsr_offsets (V+1,),
+    - Hessian pattern (3x3 blocks, see :class:`simgen.topology.BsrPattern`): bsr_offsets (V+1,),
       bsr_columns (nnz,), bsr_rows (nnz,), diag_slots (V,), tri_slots (F, 9), hinge_slots (E, 16),
       all int32.
 

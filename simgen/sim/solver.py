@@ -42,7 +42,6 @@ whole captured frame and redoes the failed instances at a finer step (``step(...
 
 import functools
 import math
-from dataclasses import dataclass, field
 from types import SimpleNamespace
 
 import numpy as np
@@ -50,13 +49,13 @@ import warp as wp
 
 from simgen.errors import InputError
 from simgen.sim.collider import BodyCollider
-from simgen.sim.energies import (ContactFrame, ContactParams, FrictionParams, GravityParams, SelfContactParams,
-                                 SelfContactSet, eval_bending, eval_contact, eval_attachment, eval_damping, eval_floor, eval_friction,
+from simgen.sim.energies import (ContactFrame, SelfContactSet, eval_bending, eval_contact, eval_attachment, eval_damping, eval_floor, eval_friction,
                                  eval_gravity, eval_inertia, eval_membrane, eval_self_contact, load_kernels,
                                  project_floor, update_contact_frame)
-from simgen.sim.energies._common import module_name, scalar_types
+from simgen.sim.warp_toolkit import module_name, scalar_types
 from simgen.sim.linear import BlockJacobiPCG
 from simgen.sim.model import ClothModel, ClothState
+from simgen.sim.config import SolverConfig
 from simgen.sim.strain_limit import StrainLimiter, strain_limit_kernels
 
 __all__ = ["SolverConfig", "ImplicitSolver", "SolverDivergedError", "solver_kernels"]
@@ -72,95 +71,6 @@ class SolverDivergedError(RuntimeError):
     def __init__(self, message: str, instances=()) -> None:
         super().__init__(message)
         self.instances = [int(i) for i in instances]
-
-
-@dataclass(frozen=True)
-class SolverConfig:
-    """Options of :class:`ImplicitSolver` (SI units).
-
-    newton_iterations: Newton iterations per (sub)step (ARCSim: 1).
-    newton_tolerance [m]: if > 0, stop iterating once the largest vertex update is below it (costs a
-      host read per iteration, so it is off by default and for graph capture).
-    cg_iterations: PCG iterations launched per Newton iteration (work stops once converged).
-    cg_tolerance: relative PCG tolerance on the preconditioned residual.
-    line_search: backtrack alpha = 1, 1/2, ... (``line_search_steps`` trials, Armijo constant
-      ``armijo``) on each instance's incremental potential.
-    substeps: equal substeps per :meth:`ImplicitSolver.step` (the body moves linearly across them).
-    gravity, contact, friction: the energy parameters; friction=None switches friction off.
-    self_contact: cloth-cloth vertex-triangle repulsion (:class:`SelfContactParams`); None (default)
-      switches it off.
-    floor [m]: height of the ground plane y = floor (the body contact's penalty against it and,
-      with ``project``, a projection onto it after each substep; :mod:`simgen.sim.energies.floor`);
-      None: no floor.
-    damping: include the material damping potential (only matters if the material has damping).
-    strain_limit: if set, after each (sub)step no triangle stretches past 1 + strain_limit in any
-      direction (:mod:`simgen.sim.strain_limit`, ``strain_limit_iterations`` Jacobi passes, before
-      the body projection); None (default) leaves plain backward Euler.
-    project: after each step push vertices found inside the body onto it (offset
-      ``projection_offset`` [m] outside) and remove their inward normal velocity.
-    constraint_rounds: how many times the strain limiter and the body projection alternate after
-      each substep (both project onto a constraint set: each undoes part of the other, and
-      alternating approaches a state that meets both; the body projection always comes last, so
-      the output is never inside the body). 1 (default) runs each once.
-    guard: check each step for divergence and retry it as two half steps, up to ``max_retries``
-      levels. max_speed [m/s]: a vertex faster than this marks divergence. divergence_ratio: E may
-      rise at most this many times the first Newton model's predicted decrease.
-    guard_energy: the guard's energy test (True, default). False keeps only its non-finite and
-      max_speed tests and skips the energy passes the test needs (the first assembly's energy and
-      one energy evaluation after each step). With a stiff contact penalty E can rise within a step
-      that stays finite and slow (the projection then resolves the contact), and the test redoes
-      such steps at up to 2^max_retries finer ones: on the T-shirt every retry came from it, so the
-      thesis presets turn it off (BENCHMARKS.md, 2026-11-25).
-    """
-
-    newton_iterations: int = 1
-    newton_tolerance: float = 0.0
-    cg_iterations: int = 50
-    cg_tolerance: float = 1.0e-3
-    line_search: bool = False
-    line_search_steps: int = 8
-    armijo: float = 1.0e-4
-    substeps: int = 1
-    gravity: GravityParams = field(default_factory=GravityParams)
-    contact: ContactParams = field(default_factory=ContactParams)
-    friction: FrictionParams | None = field(default_factory=FrictionParams)
-    self_contact: SelfContactParams | None = None
-    floor: float | None = 0.0
-    damping: bool = True
-    strain_limit: float | None = None
-    strain_limit_iterations: int = 8
-    project: bool = True
-    projection_offset: float = 0.0
-    constraint_rounds: int = 1
-    guard: bool = True
-    max_retries: int = 4
-    max_speed: float = 50.0
-    divergence_ratio: float = 10.0
-    guard_energy: bool = True
-
-    def __post_init__(self) -> None:
-        if self.floor is not None and (isinstance(self.floor, bool) or not isinstance(self.floor, (int, float))
-                                       or not math.isfinite(self.floor)):
-            raise InputError(f"solver floor must be a finite number [m] or None, got {self.floor!r}")
-        if self.strain_limit is not None and not (isinstance(self.strain_limit, (int, float))
-                                                  and not isinstance(self.strain_limit, bool)
-                                                  and math.isfinite(self.strain_limit) and self.strain_limit > 0):
-            raise InputError(f"solver strain_limit must be a finite number > 0 or None, got {self.strain_limit!r}")
-        for name in ("newton_iterations", "cg_iterations", "line_search_steps", "substeps", "strain_limit_iterations",
-                     "constraint_rounds"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
-                raise InputError(f"solver {name} must be an integer >= 1, got {v!r}")
-        if isinstance(self.max_retries, bool) or not isinstance(self.max_retries, int) or self.max_retries < 0:
-            raise InputError(f"solver max_retries must be an integer >= 0, got {self.max_retries!r}")
-        for name in ("newton_tolerance", "cg_tolerance", "projection_offset"):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
-                raise InputError(f"solver {name} must be a finite number >= 0, got {v!r}")
-        for name in ("armijo", "max_speed", "divergence_ratio"):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
-                raise InputError(f"solver {name} must be a finite number > 0, got {v!r}")
 
 
 @functools.cache

@@ -27,7 +27,7 @@ from types import SimpleNamespace
 import warp as wp
 
 from simgen.errors import InputError
-from simgen.sim.energies._common import module_name, scalar_types
+from simgen.sim.warp_toolkit import module_name, scalar_types
 
 __all__ = ["StrainLimiter", "strain_limit_kernels"]
 

@@ -12,7 +12,7 @@ for wp.float32 (the solver) and wp.float64 (tests); the model's scalar type pick
 
 import warp as wp
 
-from simgen.sim.energies._common import module_name
+from simgen.sim.warp_toolkit import module_name
 from simgen.sim.energies.attachment import attachment_kernels, eval_attachment
 from simgen.sim.energies.bending import bending_kernels, eval_bending
 from simgen.sim.energies.contact import ContactFrame, ContactParams, contact_kernels, eval_contact, update_contact_frame

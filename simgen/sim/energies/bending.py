@@ -1,6 +1,6 @@
 """Dihedral bending energy (SNUG eq. 5.10), its gradient and Gauss-Newton Hessian.
 
-Per hinge e (edge x0-x1, wings x2 and x3, see :func:`simgen.sim.topology.extract_hinges`):
+Per hinge e (edge x0-x1, wings x2 and x3, see :func:`simgen.topology.extract_hinges`):
 
     E_e = k_e (theta - theta_rest)^2 / 2,   k_e = k_bend * l^2 / (4 (a1 + a2))   [J],
 
@@ -25,7 +25,7 @@ from types import SimpleNamespace
 
 import warp as wp
 
-from simgen.sim.energies._common import launch_blocked, module_name, reduce_funcs, resolve_outputs, scalar_types
+from simgen.sim.warp_toolkit import launch_blocked, module_name, reduce_funcs, resolve_outputs, scalar_types
 
 __all__ = ["eval_bending", "bending_funcs", "bending_kernels"]
 

@@ -57,7 +57,7 @@ from types import SimpleNamespace
 import warp as wp
 
 from simgen.params import ContactParams
-from simgen.sim.energies._common import module_name, resolve_outputs, scalar_types
+from simgen.sim.warp_toolkit import module_name, resolve_outputs, scalar_types
 
 __all__ = ["ContactParams", "ContactFrame", "eval_contact", "update_contact_frame", "contact_funcs",
            "contact_kernels", "part_inputs"]

@@ -25,7 +25,7 @@ from types import SimpleNamespace
 import warp as wp
 
 from simgen.errors import InputError
-from simgen.sim.energies._common import (launch_blocked, math_funcs, module_name, reduce_funcs, resolve_outputs,
+from simgen.sim.warp_toolkit import (launch_blocked, math_funcs, module_name, reduce_funcs, resolve_outputs,
                                          scalar_types)
 from simgen.sim.energies.bending import bending_funcs
 from simgen.sim.energies.membrane import membrane_funcs

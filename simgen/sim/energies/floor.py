@@ -19,7 +19,7 @@ from types import SimpleNamespace
 
 import warp as wp
 
-from simgen.sim.energies._common import module_name, resolve_outputs, scalar_types
+from simgen.sim.warp_toolkit import module_name, resolve_outputs, scalar_types
 
 __all__ = ["eval_floor", "project_floor", "floor_kernels"]
 

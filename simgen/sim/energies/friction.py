@@ -29,7 +29,7 @@ import warp as wp
 
 from simgen.errors import InputError
 from simgen.params import FrictionParams
-from simgen.sim.energies._common import module_name, resolve_outputs, scalar_types
+from simgen.sim.warp_toolkit import module_name, resolve_outputs, scalar_types
 
 __all__ = ["FrictionParams", "eval_friction", "friction_kernels"]
 

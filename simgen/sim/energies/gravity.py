@@ -6,7 +6,7 @@ from types import SimpleNamespace
 import warp as wp
 
 from simgen.params import GravityParams
-from simgen.sim.energies._common import launch_blocked, module_name, reduce_funcs, resolve_outputs, scalar_types
+from simgen.sim.warp_toolkit import launch_blocked, module_name, reduce_funcs, resolve_outputs, scalar_types
 
 __all__ = ["GravityParams", "eval_gravity", "gravity_kernels"]
 

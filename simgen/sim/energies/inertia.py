@@ -12,7 +12,7 @@ from types import SimpleNamespace
 import warp as wp
 
 from simgen.errors import InputError
-from simgen.sim.energies._common import launch_blocked, module_name, reduce_funcs, resolve_outputs, scalar_types
+from simgen.sim.warp_toolkit import launch_blocked, module_name, reduce_funcs, resolve_outputs, scalar_types
 
 __all__ = ["eval_inertia", "inertia_kernels"]
 

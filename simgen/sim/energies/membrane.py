@@ -21,7 +21,7 @@ from types import SimpleNamespace
 
 import warp as wp
 
-from simgen.sim.energies._common import (launch_blocked, math_funcs, module_name, reduce_funcs, resolve_outputs,
+from simgen.sim.warp_toolkit import (launch_blocked, math_funcs, module_name, reduce_funcs, resolve_outputs,
                                          scalar_types)
 
 __all__ = ["eval_membrane", "membrane_funcs", "membrane_kernels"]

@@ -35,7 +35,7 @@ import warp as wp
 
 from simgen.errors import InputError
 from simgen.params import check_penalty_params
-from simgen.sim.energies._common import module_name, resolve_outputs, scalar_types
+from simgen.sim.warp_toolkit import module_name, resolve_outputs, scalar_types
 from simgen.sim.energies.contact import contact_funcs
 
 __all__ = ["SelfContactParams", "SelfContactSet", "eval_self_contact", "self_contact_kernels", "INSTANCE_SPACING"]

@@ -1,0 +1,188 @@
+"""Per-frame statistics of a batched simulation: penetration of the body and whether the garment is
+on it (:mod:`simgen.sim.placement`), for every instance at every frame.
+
+Self-intersection rule: a cloth vertex inside the body (by the generalised winding number, > 0.5)
+counts as *at a body self-intersection* when (a) its closest body point, moved
+``self_intersection_probe`` (2 mm) outward along the contact normal, is still inside the body: a
+closest surface buried in another body part (arm in torso at the armpit, thigh in thigh at the
+crotch) cannot be exited along its normal, and the projection cannot resolve such vertices; or (b)
+the solver's contact, with its body part rule, sees it outside: cloth lying on its own part where
+another part presses into that one (a forearm sunk into the belly) is kept on its own part and
+so lies inside the other (:mod:`simgen.sim.energies.contact`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from simgen.sim.collider import BodyCollider
+from simgen.sim.energies.contact import contact_funcs, part_inputs
+from simgen.sim.model import ClothModel
+
+__all__ = ["FRAME_STAT_KEYS", "FrameStats", "stack_stats"]
+
+# Per-frame statistics (each an array over frames in SimulationResult.stats / protocol_stats).
+FRAME_STAT_KEYS = (
+    "max_depth",                  # [m] deepest cloth vertex inside the body at the output frame (0 if none)
+    "max_depth_regular",          # [m] the same over vertices not at a body self-intersection
+    "inside_count",               # vertices inside the body at the output frame
+    "inside_share",               # inside_count / V
+    "self_intersection_count",    # inside vertices at a body self-intersection (module doc's rule)
+    "depth_before_projection",    # [m] deepest vertex the solver's projections found over the frame
+    "retries",                    # half-step retries of the solver's divergence guard
+    "unresolved",                 # steps still failing the guard after every retry (finite)
+    "newton_iterations",          # Newton iterations over the frame's substeps
+    "cg_iterations",              # PCG iterations over the frame's substeps
+    "step_time",                  # [s] the frame's stepping (posing, refits, solver), synchronised
+    "wall_time",                  # [s] host wall time of the frame, statistics included
+    "body_share",                 # share of the garment's vertices within 5 cm of the body (simgen.sim.placement)
+    "lbs_offset",                 # [m] median distance of the garment's support from its skinned (LBS) position
+    "support_drop",               # [m] median sag of the support below its skinned position (along the body's up)
+    "min_height",                 # [m] the lowest garment vertex (the floor: SolverConfig.floor)
+)
+
+
+_body_contact = contact_funcs(wp.float32).body_contact
+
+
+@wp.kernel(enable_backward=False)
+def _classify_inside(
+    x: wp.array(dtype=wp.vec3),
+    vertex_instance: wp.array(dtype=wp.int32),
+    winding_meshes: wp.array(dtype=wp.uint64),
+    query_distance: float,
+    probe: float,
+    vertex_part: wp.array(dtype=wp.int32),
+    part_masks: wp.array(dtype=wp.int32),
+    use_parts: int,
+    pinch_distance: float,
+    distance: wp.array(dtype=wp.float32),
+    depth: wp.array(dtype=wp.float32),
+    inside: wp.array(dtype=wp.int32),
+    self_hit: wp.array(dtype=wp.int32),
+):
+    # distance[i] = unsigned distance to the body surface (query_distance where farther); depth[i]
+    # = that distance if inside, else 0; self_hit[i] = 1 if inside at a self-intersection.
+    # Inside/outside by the generalised winding number, which stays right where body parts
+    # overlap (a normal-based sign there reads the other part's outside).
+    i = wp.tid()
+    distance[i] = query_distance
+    depth[i] = 0.0
+    inside[i] = 0
+    self_hit[i] = 0
+    xi = x[i]
+    winding_mesh = winding_meshes[vertex_instance[i]]
+    q = wp.mesh_query_point_sign_winding_number(winding_mesh, xi, query_distance, 2.0, 0.5)
+    if not q.result:
+        return
+    p = wp.mesh_eval_position(winding_mesh, q.face, q.u, q.v)
+    d = wp.length(p - xi)
+    distance[i] = d
+    if q.sign > 0.0:
+        return
+    depth[i] = d
+    inside[i] = 1
+    n = wp.vec3(0.0)
+    if d > 1.0e-9:
+        n = (p - xi) / d
+    else:
+        a = wp.mesh_get_point(winding_mesh, q.face * 3 + 0)
+        b = wp.mesh_get_point(winding_mesh, q.face * 3 + 1)
+        c = wp.mesh_get_point(winding_mesh, q.face * 3 + 2)
+        n = wp.normalize(wp.cross(b - a, c - a))
+    w = wp.mesh_query_point_sign_winding_number(winding_mesh, p + probe * n, query_distance + probe, 2.0, 0.5)
+    if w.result and w.sign < 0.0:
+        self_hit[i] = 1
+    elif use_parts != 0:
+        found, dc, nc, fc, uc, vc, own = _body_contact(winding_mesh, part_masks, vertex_part[i], xi, query_distance,
+                                                  pinch_distance)
+        if found != 0 and dc >= 0.0:
+            self_hit[i] = 1
+
+
+class FrameStats:
+    """Per-frame statistics of every instance: penetration, and whether the garment is on the body
+    (:mod:`simgen.sim.placement`) at the output frame."""
+
+    def __init__(self, model: ClothModel, collider: BodyCollider, wbody, garment, body, *, query_distance: float,
+                 self_intersection_probe: float, pinch_distance: float) -> None:
+        from simgen.sim.placement import ON_BODY_DISTANCE, garment_reference
+
+        dev = model.device
+        self.model, self.collider, self.wbody = model, collider, wbody
+        self.probe, self.pinch_distance = float(self_intersection_probe), float(pinch_distance)
+        n = model.num_vertices
+        self.distance = wp.zeros(n, dtype=wp.float32, device=dev)
+        self.depth = wp.zeros(n, dtype=wp.float32, device=dev)
+        self.inside = wp.zeros(n, dtype=wp.int32, device=dev)
+        self.self_hit = wp.zeros(n, dtype=wp.int32, device=dev)
+        # The collider's meshes lack winding-number support; a second BVH per instance on the same
+        # points adds it and is refit only when statistics are taken.
+        nv = collider.num_body_vertices
+        self.winding_meshes = [
+            wp.Mesh(points=collider.points[k * nv:(k + 1) * nv], indices=collider.faces, support_winding_number=True)
+            for k in range(collider.num_instances)]
+        self.winding_ids = wp.array([m.id for m in self.winding_meshes], dtype=wp.uint64, device=dev)
+        self.starts = np.asarray(model.vertex_start)
+        self.query_distance = max(float(query_distance), ON_BODY_DISTANCE)
+        # The garment's LBS positions: its template on each instance's shape, posed on the device by
+        # the body's own skinning kernel with the garment's weights.
+        self.reference = garment_reference(garment, body)
+        self.template = np.asarray(garment.vertices, dtype=np.float64)
+        ni, nvg = model.num_instances, len(self.template)
+        self.lbs_rest = wp.zeros((ni, nvg), dtype=wp.vec3, device=dev)
+        self.lbs_rest_up = wp.zeros((ni, nvg), dtype=wp.vec3, device=dev)
+        self.lbs = wp.zeros((ni, nvg), dtype=wp.vec3, device=dev)
+        self.lbs_up = wp.zeros((ni, nvg), dtype=wp.vec3, device=dev)
+        self.skin_joint = wp.array(self.reference.skin_joint, dtype=wp.int32, device=dev)
+        self.skin_weight = wp.array(self.reference.skin_weight.astype(np.float32), dtype=wp.float32, device=dev)
+        self.betas = None
+
+    def measure(self, positions: wp.array, betas: np.ndarray) -> list[dict]:
+        """One dict per instance (keys: the penetration and placement entries of FRAME_STAT_KEYS);
+        betas (N, B): each instance's body shape now."""
+        from simgen.body._warp_kernels import skinning_kernel
+        from simgen.sim.placement import placement_row
+
+        for m in self.winding_meshes:
+            m.refit()
+        model = self.model
+        wp.launch(_classify_inside, dim=model.num_vertices, device=model.device,
+                  inputs=[positions, model.vertex_instance, self.winding_ids, self.query_distance,
+                          self.probe,
+                          *part_inputs(model, self.collider.part_masks, self.pinch_distance),
+                          self.distance, self.depth, self.inside, self.self_hit])
+        if self.betas is None or not np.array_equal(self.betas, betas):
+            self.betas = np.array(betas, dtype=np.float64)
+            rest = self.reference.rest_vertices(self.template, self.betas)
+            self.lbs_rest.assign(rest.astype(np.float32))
+            self.lbs_rest_up.assign((rest + np.array([0.0, 1.0, 0.0])).astype(np.float32))
+        for rest, out in ((self.lbs_rest, self.lbs), (self.lbs_rest_up, self.lbs_up)):
+            wp.launch(skinning_kernel, dim=out.shape, device=model.device,
+                      inputs=[rest, self.wbody.transforms, self.skin_joint, self.skin_weight], outputs=[out])
+        x, lbs = positions.numpy(), self.lbs.numpy()
+        up = self.lbs_up.numpy() - lbs
+        dist, depth, inside, self_hit = (a.numpy() for a in (self.distance, self.depth, self.inside, self.self_hit))
+        rows = []
+        for k, (a, b) in enumerate(zip(self.starts[:-1], self.starts[1:])):
+            d, ins, sh = depth[a:b], inside[a:b], self_hit[a:b]
+            regular = (ins != 0) & (sh == 0)
+            rows.append(dict(
+                max_depth=float(d.max(initial=0.0)),
+                max_depth_regular=float(d[regular].max(initial=0.0)),
+                inside_count=int(ins.sum()),
+                inside_share=float(ins.sum()) / max(b - a, 1),
+                self_intersection_count=int(sh.sum()),
+                **placement_row(x[a:b], lbs[k], up[k], dist[a:b], self.reference.support),
+            ))
+        return rows
+
+
+def stack_stats(rows: list[dict]) -> dict:
+    out = {}
+    for k in FRAME_STAT_KEYS:
+        dtype = np.int64 if k in ("inside_count", "self_intersection_count", "retries", "unresolved",
+                                  "newton_iterations", "cg_iterations") else np.float64
+        out[k] = np.array([r[k] for r in rows], dtype=dtype)
+    return out
