@@ -21,6 +21,7 @@ from simgen.dataset import check_dataset, generate_dataset, load_spec, open_data
 from simgen.dataset.storage import Location, arrays_checksum
 from simgen.dataset.store import node_arrays
 from simgen.errors import InputError
+from simgen.sim import SimulationFailure
 
 TINY_IDS = {f"{m}__{s}" for m in ("jumping_jacks", "walk_fast") for s in ("zero", "b1p2")}
 
@@ -97,6 +98,10 @@ def tiny(tmp_path_factory):
     state["reader_at_kill"] = open_dataset(out).sequence_ids()
     state["resume"] = generate_dataset("tiny", out=str(out))
     return state
+
+
+def _injected(job):
+    return SimulationFailure(job.key, "diverged (injected)", "animate", 1)
 
 
 def test_kill_leaves_no_half_sequence(tiny):
@@ -411,7 +416,7 @@ def test_diverged_job_is_retried_with_smaller_steps(tmp_path, monkeypatch):
     def flaky(garment, body, jobs, config, progress=None):
         res = original(garment, body, jobs, config, progress=progress)
         calls.append(([j.id for j in jobs], config.substeps))
-        return [ex.SimFailure(j.key, "diverged (injected)") if j.id == "walk_fast__b1p2" and j.attempt == 1 else r
+        return [_injected(j) if j.id == "walk_fast__b1p2" and j.attempt == 1 else r
                 for j, r in zip(jobs, res)]
 
     monkeypatch.setattr(ex, "simulate_jobs", flaky)
@@ -431,7 +436,7 @@ def test_diverged_job_is_retried_with_smaller_steps(tmp_path, monkeypatch):
     def flaky_template(garment, body, jobs, config, progress=None):
         res = original(garment, body, jobs, config, progress=progress)
         calls.append(([j.id for j in jobs], config.substeps))
-        return [ex.SimFailure(j.key, "diverged (injected)") if j.kind == "template" and j.attempt == 1 else r
+        return [_injected(j) if j.kind == "template" and j.attempt == 1 else r
                 for j, r in zip(jobs, res)]
 
     monkeypatch.setattr(ex, "simulate_jobs", flaky_template)
@@ -451,7 +456,7 @@ def test_diverged_job_is_retried_with_smaller_steps(tmp_path, monkeypatch):
 
     # A job that fails every attempt is recorded as failed: check reports it, the CLI exits 1.
     monkeypatch.setattr(ex, "simulate_jobs", lambda g, b, jobs, c, progress=None: [
-        ex.SimFailure(j.key, "diverged (injected)") if j.kind == "sequence" else r
+        _injected(j) if j.kind == "sequence" else r
         for j, r in zip(jobs, original(g, b, jobs, c, progress=progress))])
     spec2 = spec.with_overrides(shapes=["zero"])
     (rep,) = generate_dataset(spec2, out=str(tmp_path / "f"))
@@ -563,24 +568,10 @@ def test_object_store_commit_markers():
 
 
 def test_batched_solver_contract(tmp_path, monkeypatch):
-    """The executor drives simgen.sim.simulate_batch (issue 4's contract) when it exists: one call per
-    batch, per-frame progress, a SimulationFailure in one slot re-queued while the others are written.
-    A stand-in with that contract (built on simulate) replaces it here."""
-    from dataclasses import dataclass
-
+    """The executor drives simgen.sim.simulate_batch: one call per batch, per-frame progress, a
+    SimulationFailure in one slot re-queued while the others are written. A stand-in with that
+    contract (built on simulate) replaces it here."""
     import simgen.sim as sim
-
-    @dataclass
-    class FakeJob:
-        clip: object
-        betas: object = None
-        frames: object = None
-        key: object = None
-
-    @dataclass
-    class FakeFailure:
-        key: str
-        message: str
 
     calls = []
 
@@ -589,15 +580,14 @@ def test_batched_solver_contract(tmp_path, monkeypatch):
         out = []
         for j in jobs:
             if j.key == "sequence:walk_fast__b1p2" and config.substeps == 10:
-                out.append(FakeFailure(j.key, "diverged beyond the retries"))
+                out.append(sim.SimulationFailure(j.key, "diverged beyond the retries", "animate", 3))
             else:
                 out.append(sim.simulate(garment, body, j.clip, j.betas, config))
             if progress is not None:
                 progress(len(out), len(jobs), "animate")
         return out
 
-    monkeypatch.setattr(sim, "SimulationJob", FakeJob, raising=False)
-    monkeypatch.setattr(sim, "simulate_batch", fake_batch, raising=False)
+    monkeypatch.setattr(sim, "simulate_batch", fake_batch)
     seen = []
     spec = micro()
     (rep,) = generate_dataset(spec, out=str(tmp_path / "b"), progress=lambda d, t: seen.append((d, t)))

@@ -18,7 +18,7 @@ from simgen.motion.library import load_motion
 from simgen.motion.ops import trim
 from simgen.sim import (SimulationConfig, SimulationFailure, SimulationJob, SimulationResult, SolverDivergedError,
                         simulate, simulate_batch)
-from simgen.sim import driver as driver_module
+from simgen.sim import batch as batch_module
 
 wp.config.quiet = True
 DEVICE = os.environ.get("SIMGEN_TEST_DEVICE", "cpu")
@@ -74,7 +74,7 @@ def test_mixed_frame_rates_are_refused(inputs):
         simulate_batch(garment, body, [SimulationJob(walk), SimulationJob(resample(squat, 60.0))], CFG)
 
 
-class _Poison(driver_module.ImplicitSolver):
+class _Poison(batch_module.ImplicitSolver):
     """Puts NaN into the last instance's positions at its 8th step (``persistent``: at every step from
     the 8th on, so that instance diverges on every retry; else once, which a retry from the frame's
     start recovers)."""
@@ -103,7 +103,7 @@ def test_failed_instance_is_redone_alone(inputs, walk_alone, monkeypatch):
     """A step that fails in one instance is redone for it alone at finer steps: it recovers, and its
     batch mate's result is what it would be on its own (held, not retried)."""
     body, garment, walk, squat = inputs
-    monkeypatch.setattr(driver_module, "ImplicitSolver", _Poison)
+    monkeypatch.setattr(batch_module, "ImplicitSolver", _Poison)
     monkeypatch.setattr(_Poison, "armed", True)
     monkeypatch.setattr(_Poison, "persistent", False)
     ok, bad = simulate_batch(garment, body, [SimulationJob(walk, frames=3, key="ok"),
@@ -119,7 +119,7 @@ def test_failed_instance_is_redone_alone(inputs, walk_alone, monkeypatch):
 
 def test_failing_instance_is_isolated(inputs, walk_alone, monkeypatch):
     body, garment, walk, squat = inputs
-    monkeypatch.setattr(driver_module, "ImplicitSolver", _Poison)
+    monkeypatch.setattr(batch_module, "ImplicitSolver", _Poison)
     monkeypatch.setattr(_Poison, "armed", True)
     monkeypatch.setattr(_Poison, "persistent", True)
     jobs = [SimulationJob(walk, frames=3, key="ok"), SimulationJob(walk, frames=3, key="bad")]

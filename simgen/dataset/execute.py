@@ -10,9 +10,8 @@ and the same for all jobs (the body is the template body at rest throughout), an
 takes no initial state.
 
 :func:`run_batch` runs in the driver (local execution) or in a Ray task: it simulates the jobs
-of one batch in one batched solver call (``simgen.sim.simulate_batch`` when present, else one
-``simulate`` per job), then writes each finished job as a committed node. The two phases are
-:func:`simulate_batch_task` (device work, on the thread that owns Warp) and :func:`write_batch`
+of one batch in one batched solver call (:func:`simgen.sim.simulate_batch`), then writes each
+finished job as a committed node. The two phases are :func:`simulate_batch_task` (device work, on the thread that owns Warp) and :func:`write_batch`
 (host work: ground truth, statistics, Zarr, commits); the local executor runs the write of one
 batch in a background thread while the next batch simulates (:mod:`simgen.dataset.generate`).
 Clips of unequal length share a batch: the batch runs to the longest clip and each result is cut
@@ -36,7 +35,7 @@ from simgen.dataset.storage import Location, StoreWriteError
 from simgen.errors import InputError
 
 __all__ = ["Job", "BatchTask", "SimulatedBatch", "run_batch", "simulate_batch_task", "write_batch", "rest_clip",
-           "simulate_jobs", "job_cloth_frames", "SimFailure"]
+           "simulate_jobs", "job_cloth_frames"]
 
 
 @dataclass
@@ -85,14 +84,6 @@ class BatchTask:
         return 2 ** (self.attempt - 1)
 
 
-@dataclass
-class SimFailure:
-    """A job whose simulation failed (diverged or produced non-finite positions)."""
-
-    key: str
-    message: str
-
-
 def rest_clip(fps: float, name: str = "rest"):
     """A one-frame clip in the rest pose (zero rotations, zero translation)."""
     from simgen.motion.clip import MotionClip
@@ -120,44 +111,22 @@ def _load_garment(name: str, body_source: str):
 
 
 def simulate_jobs(garment, body, jobs: list[Job], config, progress=None) -> list:
-    """Simulate jobs as one batch: SimulationResult or SimFailure per job, in order.
+    """Simulate jobs as one batch (:func:`simgen.sim.simulate_batch`, all instances in one system):
+    a :class:`simgen.sim.SimulationResult` or :class:`simgen.sim.SimulationFailure` per job, in order.
 
-    Uses ``simgen.sim.simulate_batch`` (all instances in one batched system) when the solver
-    provides it, else ``simgen.sim.simulate`` job by job. progress(cloth_frames_done) is called as
-    frames complete.
+    progress(cloth_frames_done) is called after every batch frame.
     """
-    import simgen.sim as sim
+    from simgen.sim import SimulationJob, simulate_batch
 
     quiet_warp()
-    total = [0]
+    n = len(jobs)
 
-    if hasattr(sim, "simulate_batch") and hasattr(sim, "SimulationJob"):
-        n = len(jobs)
+    def on_batch(done, total_frames, phase):
+        if progress is not None:
+            progress(done * n)
 
-        def on_batch(done, total_frames, phase):
-            if progress is not None:
-                progress(done * n)
-
-        sjobs = [sim.SimulationJob(j.clip, betas=j.betas, frames=None, key=j.key) for j in jobs]
-        raw = sim.simulate_batch(garment, body, sjobs, config, progress=on_batch)
-        return [r if hasattr(r, "positions") else SimFailure(j.key, str(getattr(r, "message", r)))
-                for j, r in zip(jobs, raw)]
-
-    out = []
-    for j in jobs:
-        base = total[0]
-
-        def on_frame(done, total_frames, phase, base=base):
-            if progress is not None:
-                progress(base + done)
-
-        try:
-            r = sim.simulate(garment, body, j.clip, j.betas, config, progress=on_frame)
-            out.append(r)
-        except sim.SolverDivergedError as exc:
-            out.append(SimFailure(j.key, f"solver diverged ({exc})"))
-        total[0] = base + config.relax_frames + config.ramp_frames + config.rest_frames + j.frames
-    return out
+    return simulate_batch(garment, body, [SimulationJob(j.clip, betas=j.betas, key=j.key) for j in jobs], config,
+                          progress=on_batch)
 
 
 def _frame_stats(result, faces, rest_inverse) -> tuple[dict, dict]:
@@ -219,7 +188,7 @@ class SimulatedBatch:
 
     What :func:`write_batch` needs and nothing on the device: the task, the spec with its device
     resolved, the solver config, garment and body (host objects), the jobs simulated (template
-    first), their results (SimulationResult or SimFailure), the outcomes of jobs whose node was
+    first), their results (SimulationResult or SimulationFailure), the outcomes of jobs whose node was
     already committed, and the phase's timings (wall, step_s) and cloth-frames.
     """
 
@@ -264,6 +233,8 @@ def simulate_batch_task(task: BatchTask, progress=None) -> SimulatedBatch:
 
     Raises what the simulation raises (and the testing hook's injected fault); writes nothing.
     """
+    from simgen.sim import SimulationFailure
+
     _injected_fault()
     spec = task.spec
     loc = Location(task.location)
@@ -288,7 +259,7 @@ def simulate_batch_task(task: BatchTask, progress=None) -> SimulatedBatch:
     results = simulate_jobs(garment, body, todo, config, progress=progress) if todo else []
     wall = time.perf_counter() - t0
     step_s = max((float(np.sum(r.stats["step_time"])) + float(np.sum(r.protocol_stats.get("step_time", 0.0)))
-                  for r in results if not isinstance(r, SimFailure) and "step_time" in r.stats), default=0.0)
+                  for r in results if not isinstance(r, SimulationFailure) and "step_time" in r.stats), default=0.0)
     return SimulatedBatch(task=task, spec=spec, config=config, garment=garment, body=body, todo=todo,
                           results=results, reused=reused, wall=wall, step_s=step_s,
                           cloth_frames=job_cloth_frames(spec, todo))
@@ -302,6 +273,7 @@ def write_batch(simulated: SimulatedBatch) -> dict:
     """
     from simgen.dataset.groundtruth import fit_displacement, smooth_garment
     from simgen.dataset.quality import triangle_rest_inverse
+    from simgen.sim import SimulationFailure
 
     t_write = time.perf_counter()
     sb = simulated
@@ -317,8 +289,8 @@ def write_batch(simulated: SimulatedBatch) -> dict:
     error = None
     for job, res in zip(todo, results):
         msg = None
-        if isinstance(res, SimFailure):
-            msg = res.message
+        if isinstance(res, SimulationFailure):
+            msg = f"{res.message} (phase {res.phase}, frame {res.frame})"
         elif res.positions.shape[0] != job.frames:
             msg = f"the solver returned {res.positions.shape[0]} frames for a clip of {job.frames}"
         elif not np.all(np.isfinite(res.positions)):

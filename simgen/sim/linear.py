@@ -31,13 +31,12 @@ The recurrence for q is exact in exact arithmetic (H is linear); in float32 it d
 round-off only, far below the 1e-3 tolerance the solver uses. Reductions are segmented block
 reductions (simgen.sim.warp_toolkit.reduce_funcs): a block of ``REDUCE_BLOCK`` vertices sums
 its first instance's share in a tile and adds it with one atomic. Per-vertex atomics into one
-scalar per instance serialise on that address: at 64 instances they took 63% of the frame
-(BENCHMARKS.md).
+scalar per instance serialise on that address (measured in BENCHMARKS.md).
 
 The product reads a sliced-ELL copy of H, gathered once per solve: slices of ``ELL_SLICE`` rows
 (a warp) padded to their longest row with zero blocks in the row's own column and stored slot by
-slot, so a warp reads adjacent blocks; read row by row from the BSR, its 32 loads were a row apart
-and the spmv ran at ~0.6 TB/s, a fifth of the H100's bandwidth (BENCHMARKS.md).
+slot, so a warp reads adjacent blocks; read row by row from the BSR, its 32 loads are a row apart
+and the product runs far below the memory bandwidth (BENCHMARKS.md).
 """
 
 

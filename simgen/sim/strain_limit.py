@@ -4,7 +4,7 @@ Backward Euler with a penalty contact can squeeze a single cloth vertex far ahea
 neighbours in one step: where a fast body part presses cloth against another (the thigh lifting
 into the belly at a run, with the T-shirt's hem between them), the converged step moves one hem
 vertex 2-3 cm while its neighbours move 1 cm, and that triangle reads 3-10x its rest size for a
-frame (BENCHMARKS.md, 2026-11-25). ARCSim bounds such deformation by strain limiting (Wang,
+frame (measured in BENCHMARKS.md). ARCSim bounds such deformation by strain limiting (Wang,
 O'Brien and Ramamoorthi 2010, "Multi-resolution isotropic strain limiting"); this is the same
 idea in its simplest, position-based form, run on the device with no host read:
 

@@ -1,5 +1,5 @@
-"""Shared pieces of the energy kernels: scalar-generic types, Warp module naming, PSD projection,
-per-instance block reductions.
+"""The sim's shared Warp toolkit, used by the energies, the solver and the linear solver:
+scalar-generic types, Warp module naming, PSD projection, per-instance block reductions.
 
 Every energy kernel is built by a factory for one scalar type (``wp.float32`` on the device,
 ``wp.float64`` for the finite-difference tests), so the very code the solver runs is what the
@@ -11,8 +11,8 @@ Per-instance sums (the energy of each instance, the PCG's dot products) are segm
 reductions (:func:`reduce_funcs`, :func:`launch_blocked`): elements are stored instance by instance,
 so a block of ``REDUCE_BLOCK`` threads sums its first instance's share in a tile and adds it with
 one atomic, and the elements of a second instance in the block (at an instance boundary) add theirs
-directly. One atomic per element into one scalar per instance serialises on that address: at 64
-T-shirts the energy alone took 0.8 ms of a 1.9 ms membrane launch (BENCHMARKS.md).
+directly. One atomic per element into one scalar per instance serialises on that address
+(BENCHMARKS.md).
 """
 
 import functools

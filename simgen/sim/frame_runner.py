@@ -1,0 +1,219 @@
+"""One frame of a batched simulation for every live instance: the substeps, their CUDA graphs, and
+the retry and freeze policy.
+
+A frame is ``substeps`` S solver steps. Each poses the body on the device from the frame's joint
+rotations at the substep's end (:meth:`WarpBody.pose_from_quats`, the shape too while it changes),
+refits the collider's meshes and takes one :meth:`ImplicitSolver.step` (:meth:`FrameRunner._substeps`).
+On CUDA the whole frame replays as one captured graph, one per (reshape, retry level); the CPU, and
+the first frame (it loads every kernel and takes the first lagged contacts), run the same sequence
+eagerly.
+
+The solver's guard runs inside the graph and is read once per frame (:meth:`FrameRunner.run`): the
+instances that failed it are redone from the frame's start with every substep split into 2, then
+4, ... solver steps (``SolverConfig.max_retries`` levels, each its own graph) while the others are
+held where they got (:meth:`FrameRunner._retry`), so no instance's result depends on its batch mates'
+failures. An instance still not finite after the last level is frozen (:meth:`FrameRunner._freeze`:
+back at the frame start, pinned, its body switched off) and recorded in ``failures``; one that is
+finite but still fails the guard is kept and counted unresolved.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from simgen.sim.batch import BatchSetup
+
+__all__ = ["FrameRunner"]
+
+
+@wp.kernel(enable_backward=False)
+def _hold_instances(pinned_before: wp.array(dtype=wp.int32), vertex_instance: wp.array(dtype=wp.int32),
+                    held: wp.array(dtype=wp.int32), pinned: wp.array(dtype=wp.int32), v: wp.array(dtype=wp.vec3)):
+    # Held instances are pinned with zero velocity (kinematic and still); the others keep their pins.
+    i = wp.tid()
+    if held[vertex_instance[i]] != 0:
+        pinned[i] = 1
+        v[i] = wp.vec3(0.0)
+    else:
+        pinned[i] = pinned_before[i]
+
+
+@wp.kernel(enable_backward=False)
+def _select_instances(src_x: wp.array(dtype=wp.vec3), src_v: wp.array(dtype=wp.vec3),
+                      vertex_instance: wp.array(dtype=wp.int32), chosen: wp.array(dtype=wp.int32),
+                      x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3)):
+    i = wp.tid()
+    if chosen[vertex_instance[i]] != 0:
+        x[i] = src_x[i]
+        v[i] = src_v[i]
+
+
+class FrameRunner:
+    """Steps a :class:`BatchSetup` one frame at a time.
+
+    ``failures``: instance -> (phase, frame, message) of the instances frozen so far; a frozen
+    instance takes no further part. ``step_time`` [s]: the last frame's stepping (posing, refits,
+    solver, retries), synchronised.
+    """
+
+    def __init__(self, setup: BatchSetup) -> None:
+        import time
+
+        self._clock = time.perf_counter
+        self.setup = setup
+        cfg, dev = setup.config, setup.device
+        S, N, nb = setup.substeps, setup.num_instances, setup.betas.shape[1]
+        self.use_graph = bool(cfg.cuda_graph) and dev.is_cuda
+        self.max_level = cfg.solver.max_retries if cfg.solver.guard else 0
+        self.failures: dict[int, tuple[str, int, str]] = {}
+        self.step_time = 0.0
+        self._graphs: dict = {}
+        self._frames_run = 0
+        self._betas_now = np.zeros((N, nb))
+        model = setup.model
+        self._frame_start = model.state()
+        self._accepted = model.state()
+        self._body_start = wp.clone(setup.collider.points)
+        self._held = wp.zeros(N, dtype=wp.int32, device=dev)
+        # Per-frame body targets on the device; substep s poses from row s (views, no allocation later).
+        self._quats = wp.zeros((S, N, 24), dtype=wp.quat, device=dev)
+        self._trans = wp.zeros((S, N), dtype=wp.vec3, device=dev)
+        self._betas = wp.zeros((S, N, nb), dtype=wp.float32, device=dev)
+        self._rows = [(self._quats[s], self._trans[s], self._betas[s]) for s in range(S)]
+
+    @property
+    def betas_now(self) -> np.ndarray:
+        """Each instance's body shape at the end of the last frame, (N, nb)."""
+        return self._betas_now
+
+    @property
+    def all_failed(self) -> bool:
+        return len(self.failures) == self.setup.num_instances
+
+    def run(self, phase: str, k: int) -> None:
+        """Step frame (phase, k) of the schedule for every live instance (module doc: retries, freezing)."""
+        s = self.setup
+        q, tr, bt = s.schedule.body_targets(phase, k)
+        self._quats.assign(np.ascontiguousarray(q, dtype=np.float32))
+        self._trans.assign(np.ascontiguousarray(tr, dtype=np.float32))
+        # Re-shape only while the betas change (ramp), never for a shapeless body model.
+        reshape = s.body.num_betas > 0 and not np.all(bt == self._betas_now[None])
+        if reshape:
+            self._betas.assign(np.ascontiguousarray(bt, dtype=np.float32))
+        wp.synchronize_device(s.device)
+        t0 = self._clock()
+        self._frame(reshape, phase, k, eager=self._frames_run == 0 or not self.use_graph)
+        wp.synchronize_device(s.device)
+        self.step_time = self._clock() - t0
+        self._frames_run += 1
+        self._betas_now = np.array(bt[-1])
+
+    # -- the frame and its retries ------------------------------------------------------------------
+    def _frame(self, reshape: bool, phase: str, k: int, eager: bool) -> None:
+        s = self.setup
+        self._frame_start.assign(s.state)
+        wp.copy(self._body_start, s.collider.points)
+        bad = self._attempt(reshape, 0, eager)
+        failing = [i for i in range(s.num_instances) if bad[i] and i not in self.failures]
+        level = 0
+        while failing and level < self.max_level:
+            level += 1
+            s.solver.count_retries(failing)
+            bad = self._retry(reshape, level, eager, failing)
+            failing = [i for i in failing if bad[i]]
+        if failing:
+            diverged = [i for i in failing if bad[i] & 1]
+            s.solver.count_unresolved([i for i in failing if not bad[i] & 1])
+            if diverged:
+                self._freeze(diverged, phase, k, f"the cloth step still produced non-finite positions after "
+                                                 f"{self.max_level} retries at up to {2 ** self.max_level} solver "
+                                                 f"steps per substep")
+        if level > 0:
+            # Friction's lagged contacts at the frame's end for every instance (the retry took the
+            # held instances' without their body).
+            s.solver.take_contacts(s.state, s.collider)
+
+    def _substeps(self, reshape: bool, level: int) -> None:
+        """The frame's S substeps (each split into 2^level solver steps), as launched or captured."""
+        s = self.setup
+        s.solver.clear_deferred_guard()
+        if level > 0:
+            # A retry starts from the restored frame start: friction's contacts are taken there
+            # (at capture this puts their update into the retry's graph).
+            s.solver.reset_contacts()
+        for quats, trans, betas in self._rows:
+            if reshape:
+                s.wbody.set_shape(betas)
+            s.wbody.pose_from_quats(quats, trans)
+            s.collider.update(dt=s.dt)
+            s.solver.step(s.state, s.state, s.collider, s.dt, deferred_guard=True,
+                          substeps=s.config.solver.substeps * 2 ** level)
+
+    def _attempt(self, reshape: bool, level: int, eager: bool) -> np.ndarray:
+        """Run the frame's substeps once; the guard's failure bits per instance, (N,) int."""
+        solver = self.setup.solver
+        if eager:
+            self._substeps(reshape, level)
+        else:
+            key = (reshape, level)
+            if key not in self._graphs:
+                before = solver.host_counts()
+                with wp.ScopedCapture(device=self.setup.device, force_module_load=False) as capture:
+                    self._substeps(reshape, level)
+                after = solver.host_counts()
+                self._graphs[key] = (capture.graph, {c: after[c] - before[c] for c in after})
+                solver.add_host_counts({c: -v for c, v in self._graphs[key][1].items()})
+            graph, delta = self._graphs[key]
+            wp.capture_launch(graph)
+            solver.add_host_counts(delta)
+        return solver.deferred_bad.numpy()
+
+    def _retry(self, reshape: bool, level: int, eager: bool, failing: list) -> np.ndarray:
+        """Redo the frame from its start for ``failing`` only, at 2^level solver steps per substep.
+
+        The other instances are held: restored afterwards to the state they reached, and in between
+        pinned at the frame start with zero velocity and no body, so they neither move nor change
+        the retried ones.
+        """
+        s = self.setup
+        model, state, collider = s.model, s.state, s.collider
+        hold = np.ones(s.num_instances, dtype=np.int32)
+        hold[failing] = 0
+        self._accepted.assign(state)
+        state.assign(self._frame_start)
+        wp.copy(collider.points, self._body_start)
+        pinned = wp.clone(model.vertex_pinned)
+        ids = collider.mesh_ids.numpy().copy()  # .numpy() is a view of the array on the CPU
+        collider.mesh_ids.assign(np.where(hold != 0, np.uint64(0), ids))
+        self._held.assign(hold)
+        wp.launch(_hold_instances, dim=model.num_vertices, device=s.device,
+                  inputs=[pinned, model.vertex_instance, self._held, model.vertex_pinned, state.velocities])
+        bad = self._attempt(reshape, level, eager)
+        collider.mesh_ids.assign(ids)
+        wp.copy(model.vertex_pinned, pinned)
+        wp.launch(_select_instances, dim=model.num_vertices, device=s.device,
+                  inputs=[self._accepted.positions, self._accepted.velocities, model.vertex_instance, self._held,
+                          state.positions, state.velocities])
+        return bad
+
+    def _freeze(self, instances: list, phase: str, k: int, message: str) -> None:
+        """Back to the frame start, pinned there with no body: the instances stop; their slots fail."""
+        s = self.setup
+        model, state, collider = s.model, s.state, s.collider
+        chosen = np.zeros(s.num_instances, dtype=np.int32)
+        chosen[list(instances)] = 1
+        self._held.assign(chosen)
+        wp.launch(_select_instances, dim=model.num_vertices, device=s.device,
+                  inputs=[self._frame_start.positions, self._frame_start.velocities, model.vertex_instance,
+                          self._held, state.positions, state.velocities])
+        starts = np.asarray(model.vertex_start)
+        pinned, ids, vel = model.vertex_pinned.numpy(), collider.mesh_ids.numpy(), state.velocities.numpy()
+        for i in instances:
+            self.failures[i] = (phase, k, message)
+            pinned[starts[i]:starts[i + 1]] = 1
+            vel[starts[i]:starts[i + 1]] = 0.0
+            ids[i] = 0
+        model.vertex_pinned.assign(pinned)
+        collider.mesh_ids.assign(ids)
+        state.velocities.assign(vel)
