@@ -179,28 +179,12 @@ def _world_builder(solver: str, garment_vertices: np.ndarray, garment_faces: np.
     return builder
 
 
-@wp.kernel
-def _inside_depth_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), max_dist: float,
-                         depth: wp.array(dtype=float)):
-    """depth[i] [m]: distance to the body surface of a point inside the body (winding number), else 0."""
-    i = wp.tid()
-    p = points[i]
-    query = wp.mesh_query_point_sign_winding_number(mesh, p, max_dist)
-    d = float(0.0)
-    if query.result and query.sign < 0.0:
-        d = wp.length(p - wp.mesh_eval_position(mesh, query.face, query.u, query.v))
-    depth[i] = d
-
-
 def inside_depth(body_vertices: np.ndarray, body_faces: np.ndarray, points: np.ndarray, device) -> np.ndarray:
-    """(P,) depth [m] of each point (P, 3) [m] inside the watertight body mesh, 0 outside."""
-    mesh = wp.Mesh(points=wp.array(np.asarray(body_vertices, np.float32), dtype=wp.vec3, device=device),
-                   indices=wp.array(np.asarray(body_faces, np.int32).reshape(-1), dtype=wp.int32, device=device),
-                   support_winding_number=True)
-    pts = wp.array(np.asarray(points, np.float32), dtype=wp.vec3, device=device)
-    depth = wp.zeros(len(points), dtype=float, device=device)
-    wp.launch(_inside_depth_kernel, dim=len(points), inputs=[mesh.id, pts, 10.0], outputs=[depth], device=device)
-    return depth.numpy()
+    """(P,) depth [m] of each point (P, 3) [m] inside the watertight body mesh (winding number), 0 outside."""
+    from simgen.body.surface import project_to_surface
+
+    sd = project_to_surface(points, body_vertices, body_faces, device=device).signed_distance
+    return np.maximum(-sd, 0.0)
 
 
 def _used_memory_mb(device) -> float | None:

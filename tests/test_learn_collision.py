@@ -1,6 +1,6 @@
-"""The collision post-process: exact point-triangle distances, both closest-triangle backends against
-each other and against the Warp winding-number query, and push-out leaving nothing inside a sphere
-or a posed body."""
+"""The collision post-process: both backends against each other and against the winding-number
+query, and push-out leaving nothing inside a sphere or a posed body. (The point-triangle closest
+point and the two implementations of the body-surface query: tests/test_body_surface_query.py.)"""
 
 from __future__ import annotations
 
@@ -10,33 +10,9 @@ import torch
 import trimesh
 
 from simgen.body import load, project_to_surface
-from simgen.learn.collision import BodySurface, closest_point_on_triangles, push_out
+from simgen.learn.collision import CollisionSurface, push_out
 
 CLEARANCE = 0.002
-
-
-def test_closest_point_on_triangles_beats_a_dense_search():
-    """For random points and triangles the returned point is on the triangle and no point of a dense
-    barycentric grid is closer (within the grid's resolution)."""
-    rng = np.random.default_rng(0)
-    n = 200
-    tri = rng.normal(size=(n, 3, 3))
-    tri[: n // 4, 2] = tri[: n // 4, 0] + 1e-3 * rng.normal(size=(n // 4, 3))  # thin triangles too
-    p = rng.normal(scale=1.5, size=(n, 3))
-    t = torch.tensor(tri)
-    bary = closest_point_on_triangles(torch.tensor(p), t[:, 0], t[:, 1], t[:, 2]).numpy()
-    assert np.all(bary >= 0) and np.allclose(bary.sum(1), 1.0)
-    ours = np.einsum("nk,nkd->nd", bary, tri)
-    d_ours = np.linalg.norm(ours - p, axis=1)
-    k = 300
-    u, v = np.meshgrid(np.linspace(0, 1, k), np.linspace(0, 1, k))
-    keep = u + v <= 1
-    grid = np.stack([1 - u[keep] - v[keep], u[keep], v[keep]], 1)  # (G, 3)
-    pts = np.einsum("gk,nkd->ngd", grid, tri)
-    d_grid = np.linalg.norm(pts - p[:, None], axis=2).min(1)
-    edge = np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2).max(1)
-    assert np.all(d_ours <= d_grid + 1e-12)
-    assert np.all(d_ours >= d_grid - edge / (k - 1) * 1.5)
 
 
 def _sphere(radius=0.3):
@@ -52,10 +28,10 @@ def test_push_out_leaves_nothing_inside_a_sphere(backend):
     dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
     radii = rng.uniform(0.05, 0.36, size=500)
     pts = dirs * radii[:, None]
-    surface = BodySurface(f, len(v), backend=backend)
+    surface = CollisionSurface(f, v, backend=backend)
     out, moved = push_out(torch.tensor(pts), torch.tensor(v), surface, clearance=CLEARANCE)
     out = out.numpy()
-    sd_after = project_to_surface(out, v, f).signed_distance  # winding number: independent of the push-out
+    sd_after = project_to_surface(out, v, f).signed_distance  # winding-number sign: not the push-out's
     assert sd_after.min() > 0.0
     sd_before = project_to_surface(pts, v, f).signed_distance
     inside = sd_before < 0
@@ -67,7 +43,7 @@ def test_push_out_leaves_nothing_inside_a_sphere(backend):
     assert far.sum() > 50 and np.array_equal(out[far], pts[far])
 
 
-def test_backends_agree_with_each_other_and_with_warp_winding_numbers():
+def test_backends_agree_with_each_other_and_with_winding_numbers():
     body = load("open")
     from simgen.garment.library import load_garment
     from simgen.garment.skinning import lbs
@@ -80,20 +56,19 @@ def test_backends_agree_with_each_other_and_with_warp_winding_numbers():
     garment += rng.normal(scale=0.01, size=garment.shape)  # push some vertices into the body
     bv = torch.tensor(out.vertices[0], dtype=torch.float32)
     x = torch.tensor(garment, dtype=torch.float32)
-    qw = BodySurface(body.faces, body.num_vertices, backend="warp").query(x, bv)
-    qt = BodySurface(body.faces, body.num_vertices, backend="torch").query(x, bv)
-    assert (qw.closest - qt.closest).norm(dim=-1).max() < 1e-4
-    assert torch.allclose(qw.signed_distance.abs(), qt.signed_distance.abs(), atol=1e-5)
+    qw = CollisionSurface(body.faces, body.v_template, backend="warp").query(x, bv)
+    qt = CollisionSurface(body.faces, body.v_template, backend="torch").query(x, bv)
+    # The same query (pseudo-normal sign) by its two implementations, in float32.
+    assert qw.distance.shape == (1, len(garment))
+    assert (qw.distance - qt.distance).abs().max() < 1e-5
+    cw, ct = x - qw.distance[0, :, None] * qw.normal[0], x - qt.distance[0, :, None] * qt.normal[0]
+    assert (cw - ct).norm(dim=-1).max() < 1e-4
     ref = project_to_surface(garment, out.vertices[0], body.faces)
-    d_ref = np.abs(ref.signed_distance)
-    assert np.abs(np.abs(qw.signed_distance[0].numpy()) - d_ref).max() < 1e-5
-    # Pseudo-normal (warp) and winding-number signs agree; the torch backend's smooth-normal sign too,
-    # away from the surface.
-    assert np.array_equal(qw.signed_distance[0].numpy() < 0, ref.signed_distance < 0)
-    clear = np.abs(ref.signed_distance) > 1e-3
-    assert np.array_equal(qt.signed_distance[0].numpy()[clear] < 0, ref.signed_distance[clear] < 0)
+    assert np.abs(np.abs(qw.distance[0].numpy()) - np.abs(ref.signed_distance)).max() < 1e-5
+    # Pseudo-normal and winding-number signs agree on this body (no self-intersection in this pose).
+    assert np.array_equal(qw.distance[0].numpy() < 0, ref.signed_distance < 0)
     assert (ref.signed_distance < 0).sum() >= 10
 
-    fixed, moved = push_out(x, bv, BodySurface(body.faces, body.num_vertices))
+    fixed, moved = push_out(x, bv, CollisionSurface(body.faces, body.v_template))
     after = project_to_surface(fixed.numpy(), out.vertices[0], body.faces).signed_distance
     assert after.min() > 0.0 and moved.sum() >= (ref.signed_distance < 0).sum()

@@ -18,7 +18,7 @@ import warp as wp
 
 from simgen.physics import (BodySurface, ClothRest, FrictionParams, LaggedContact, bending, contact, friction, gravity,
                             inertia, membrane)
-from simgen.physics.contact import body_distance
+from simgen.physics.surface_query import body_distance
 from simgen.sim import BodyCollider, ClothModel
 from simgen.sim.energies import (ContactFrame, ContactParams, GravityParams, eval_bending, eval_contact, eval_friction,
                                  eval_gravity, eval_inertia, eval_membrane, update_contact_frame)

@@ -107,7 +107,11 @@ def test_attached_band_moves_rigidly_with_the_body():
     collider = BodyCollider.from_static(body.v_template, body.faces, device=DEVICE)
     c, s_ = math.cos(math.radians(40)), math.sin(math.radians(40))
     turn = np.array([[c, 0, s_], [0, 1, 0], [-s_, 0, c]])
-    collider.update(body.v_template @ turn.T + [0.0, 0.05, 0.0], dt=1.0)
+    turned = body.v_template @ turn.T + [0.0, 0.05, 0.0]
+    # Turned once, then held there: the solver places the body between its last two poses within a
+    # step (a guard retry's half step would see it half-turned).
+    collider.update(turned, dt=1.0)
+    collider.update(turned, dt=1.0)
     solver = ImplicitSolver(model, SolverConfig(newton_iterations=3, cg_iterations=300, cg_tolerance=1e-12, floor=None,
                                                 gravity=GravityParams((0.0, 0.0, 0.0)), friction=None))
     state = model.state()

@@ -24,7 +24,7 @@ from simgen.errors import InputError
 __all__ = [
     "BodyModel", "BodyOutput", "SMPL_JOINT_NAMES", "SMPL_PARENTS", "NUM_JOINTS", "load", "load_body_file",
     "OPEN_BODY_PATH", "TorchBody", "WarpBody", "axis_angle_to_matrix_torch", "bake_open_body", "describe_body",
-    "format_body_description", "SurfaceProjection", "project_to_surface",
+    "format_body_description", "SurfaceProjection", "SurfaceMesh", "project_to_surface",
 ]
 
 OPEN_BODY_PATH = Path(__file__).resolve().parent / "data" / "open.npz"
@@ -38,6 +38,7 @@ _LAZY = {
     "describe_body": ("simgen.body.describe", "describe_body"),
     "format_body_description": ("simgen.body.describe", "format_body_description"),
     "SurfaceProjection": ("simgen.body.surface", "SurfaceProjection"),
+    "SurfaceMesh": ("simgen.body.surface", "SurfaceMesh"),
     "project_to_surface": ("simgen.body.surface", "project_to_surface"),
 }
 

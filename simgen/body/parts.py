@@ -3,7 +3,7 @@
 A skinned body without pose correctives intersects itself when limbs press against it: the arms
 sink into the torso in the clips' rest poses, the thighs into each other at the crotch. Cloth
 caught there cannot be outside both parts. The solver's contact keeps such cloth on the part it
-belongs to (:mod:`simgen.sim.energies.contact`); this module says which part that is, for body
+belongs to (the part rule of :mod:`simgen.body.surface_query`); this module says which part that is, for body
 vertices and faces (from the body's weights) and for garment vertices (from the garment's
 skinning weights, which follow the same joints).
 

@@ -1,7 +1,8 @@
 """Quality measures of simulated garment frames: membrane strain and depth inside the posed body.
 
-Both are computed here from positions alone (numpy + the body's surface query), independently of
-the solver's own statistics, so :mod:`simgen.dataset.check` can audit a store.
+Both are computed here from positions alone (numpy, and the body-surface query with the
+statistics' own rules, :mod:`simgen.body.surface_query`), independently of the statistics the
+solver stored, so :mod:`simgen.dataset.check` can audit a store.
 """
 
 from __future__ import annotations
@@ -61,51 +62,39 @@ def strain_summary(positions, faces, rest_inverse) -> tuple[np.ndarray, np.ndarr
     return s.mean(axis=1), s.max(axis=1)
 
 
-def body_penetration(points, body_vertices, body_faces, *, probe: float = 2.0e-3, device: str = "cpu",
+def body_penetration(points, body_vertices, body_faces, *, probe: float | None = None, device: str = "cpu",
                      home_parts=None, part_masks=None, pinch_distance: float = 5.0e-3
                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Depth [m] of cloth vertices inside the posed body, which are at a body self-intersection, and
     every vertex's distance to the body.
 
-    points (V, 3) cloth vertices [m]; body_vertices (Vb, 3) posed body [m]; body_faces (Fb, 3).
-    Returns depth (V,) (0 outside; signed distance by the winding number), self_hit (V,) bool and
-    distance (V,) [m] (the unsigned distance to the body surface); self_hit is
-    an inside vertex whose closest body point, moved ``probe`` outward along the surface normal,
-    is still inside the body (the closest surface is buried in another body part, as in the
-    armpits and crotch); or, given home_parts (V,) (each vertex's body part,
-    :func:`simgen.body.parts.vertex_parts` of the garment's weights) and part_masks (Fb,)
-    (:func:`simgen.body.parts.face_part_masks`), an inside vertex lying outside its own part
-    within ``pinch_distance`` [m] of it: cloth the solver's contact keeps on its own part where
-    another part presses into it. The same rules as the solver's statistics, computed here
-    independently.
+    points (V, 3) cloth vertices [m]; body_vertices (Vb, 3) posed body [m]; body_faces (Fb, 3);
+    probe [m]: the self-intersection probe (None: :data:`simgen.body.surface_query.SELF_INTERSECTION_PROBE`,
+    the statistics' own); home_parts (V,) (each vertex's body part, :func:`simgen.body.parts.vertex_parts` of
+    the garment's weights) and part_masks (Fb,) (:func:`simgen.body.parts.face_part_masks`),
+    optional, switch on the body part rule; pinch_distance [m]. Returns depth (V,) (0 outside;
+    inside by the winding number), self_hit (V,) bool and distance (V,) [m] (the unsigned distance
+    to the body surface). The rules are the solver statistics' own, the same Warp kernel
+    (:data:`simgen.body.surface_query.classify_inside`), run here on positions alone.
     """
-    from simgen.body.surface import project_to_surface
+    import warp as wp
 
-    proj = project_to_surface(points, body_vertices, body_faces, device=device)
-    depth = np.where(proj.signed_distance < 0.0, -proj.signed_distance, 0.0)
-    self_hit = np.zeros(len(depth), dtype=bool)
-    inside = np.nonzero(depth > 0)[0]
-    if len(inside):
-        bv = np.asarray(body_vertices, dtype=np.float64)
-        bf = np.asarray(body_faces)
-        tri = bv[bf[proj.face[inside]]]
-        n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
-        outward = proj.closest[inside] + probe * n
-        sd = project_to_surface(outward, bv, bf, device=device).signed_distance
-        self_hit[inside] = sd < 0.0
-    rest = inside[~self_hit[inside]]
-    if len(rest) and home_parts is not None and part_masks is not None:
-        pts = np.asarray(points, dtype=np.float64)
-        home = np.asarray(home_parts)[rest]
-        masks = np.asarray(part_masks)
-        for part in np.unique(home):
-            sel = rest[home == part]
-            faces = bf[(masks & (1 << int(part))) != 0]
-            own = project_to_surface(pts[sel], bv, faces, device=device)
-            tri = bv[faces[own.face]]
-            n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-            offset = pts[sel] - own.closest
-            outside_own = np.einsum("ij,ij->i", offset, n) >= 0.0
-            self_hit[sel] = outside_own & (np.linalg.norm(offset, axis=1) <= pinch_distance)
-    return depth, self_hit, np.abs(proj.signed_distance)
+    from simgen.body.surface import SurfaceMesh
+    from simgen.body.surface_query import SELF_INTERSECTION_PROBE, classify_inside
+
+    x = np.asarray(points, dtype=np.float32).reshape(-1, 3)
+    surface = SurfaceMesh(body_vertices, body_faces, device=device)
+    n = len(x)
+    use_parts = home_parts is not None and part_masks is not None
+    parts = [wp.array(np.asarray(a, dtype=np.int32), dtype=wp.int32, device=device) if use_parts else None
+             for a in (home_parts, part_masks)]
+    reach = float(np.linalg.norm(np.ptp(np.vstack([np.asarray(body_vertices, dtype=np.float64), x]), axis=0))) + 1.0
+    out = [wp.zeros(n, dtype=wp.float32, device=device), wp.zeros(n, dtype=wp.float32, device=device),
+           wp.zeros(n, dtype=wp.int32, device=device), wp.zeros(n, dtype=wp.int32, device=device)]
+    wp.launch(classify_inside, dim=n, device=device, inputs=[
+        wp.array(x, dtype=wp.vec3, device=device), wp.zeros(n, dtype=wp.int32, device=device),
+        wp.array([surface.mesh.id], dtype=wp.uint64, device=device), reach,
+        SELF_INTERSECTION_PROBE if probe is None else float(probe), parts[0], parts[1],
+        int(use_parts), float(pinch_distance)], outputs=out)
+    distance, depth, _, self_hit = (a.numpy() for a in out)
+    return depth.astype(np.float64), self_hit != 0, distance.astype(np.float64)

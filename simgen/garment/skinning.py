@@ -78,73 +78,29 @@ class BodyPoints:
         return np.einsum("pc,pck->pk", self.bary, corners)
 
 
-def _closest_barycentric(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
-    """Barycentric coordinates (P, 3) of the point of triangle (a, b, c) closest to p (all (P, 3)).
-
-    Float64 Voronoi-region test of the triangle's vertices, edges and face: a point at a vertex gets
-    exactly (1, 0, 0) and a point over the face its exact in-plane coordinates, which is what makes
-    "closest" weights reproduce the body weights on the body surface to machine precision.
-    """
-    def dot(u, v):
-        return np.einsum("ij,ij->i", u, v)
-
-    ab, ac = b - a, c - a
-    ap, bp, cp = p - a, p - b, p - c
-    d1, d2 = dot(ab, ap), dot(ac, ap)
-    d3, d4 = dot(ab, bp), dot(ac, bp)
-    d5, d6 = dot(ab, cp), dot(ac, cp)
-    va = d3 * d6 - d5 * d4
-    vb = d5 * d2 - d1 * d6
-    vc = d1 * d4 - d3 * d2
-    out = np.empty((len(p), 3))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        # Face interior, then each region overrides it in the reverse of the usual test order, so
-        # that the first region that matches (vertex A, B, edge AB, C, AC, BC) wins.
-        denom = 1.0 / (va + vb + vc)
-        v, w = vb * denom, vc * denom
-        out[:] = np.stack([1.0 - v - w, v, w], axis=1)
-        m = (va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0)
-        t = (d4 - d3) / ((d4 - d3) + (d5 - d6))
-        out[m] = np.stack([np.zeros_like(t), 1.0 - t, t], axis=1)[m]
-        m = (vb <= 0) & (d2 >= 0) & (d6 <= 0)
-        t = d2 / (d2 - d6)
-        out[m] = np.stack([1.0 - t, np.zeros_like(t), t], axis=1)[m]
-        m = (d6 >= 0) & (d5 <= d6)
-        out[m] = (0.0, 0.0, 1.0)
-        m = (vc <= 0) & (d1 >= 0) & (d3 <= 0)
-        t = d1 / (d1 - d3)
-        out[m] = np.stack([1.0 - t, t, np.zeros_like(t)], axis=1)[m]
-        m = (d3 >= 0) & (d4 <= d3)
-        out[m] = (0.0, 1.0, 0.0)
-        m = (d1 <= 0) & (d2 <= 0)
-        out[m] = (1.0, 0.0, 0.0)
-    return out
-
-
 def closest_body_points(points, body) -> BodyPoints:
     """Closest points of ``points`` [m], shape (P, 3), on the template body (rest pose, betas = 0).
 
-    The closest triangle comes from the Warp BVH query (float32); the barycentric coordinates are
-    then recomputed in float64 on that triangle. Returns :class:`BodyPoints`.
+    The body-surface query (:func:`simgen.body.surface.project_to_surface`, winding-number sign):
+    the closest triangle from Warp's BVH, the barycentric coordinates exact in float64 on it (a
+    point at a body vertex gets exactly (1, 0, 0), one over a face its exact in-plane coordinates,
+    so "closest" weights reproduce the body weights on the body surface to machine precision).
+    Returns :class:`BodyPoints`.
     """
-    from simgen.body.surface import project_to_surface
+    from simgen.body.surface import SurfaceMesh
 
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    verts, faces = body.v_template, body.faces
+    surface = SurfaceMesh(body.v_template, body.faces)
     face = np.empty(len(pts), dtype=np.int64)
     bary = np.empty((len(pts), 3))
     dist = np.empty(len(pts))
     for start in range(0, len(pts), _QUERY_CHUNK):
         sl = slice(start, start + _QUERY_CHUNK)
-        proj = project_to_surface(pts[sl], verts, faces)
-        if np.any(proj.face < 0):
-            raise InputError(f"body model {body.name!r}: no closest triangle found for some points")
-        f = faces[proj.face]
-        b = _closest_barycentric(pts[sl], verts[f[:, 0]], verts[f[:, 1]], verts[f[:, 2]])
-        # A degenerate body triangle leaves NaNs: keep Warp's own (float32) coordinates there.
-        bad = ~np.all(np.isfinite(b), axis=1)
-        b[bad] = proj.bary[bad]
-        b = np.clip(b, 0.0, None)
+        proj = surface.project(pts[sl])
+        if np.any(proj.face < 0) or not np.all(np.isfinite(proj.bary)):
+            raise InputError(f"body model {body.name!r}: no (non-degenerate) closest triangle found for "
+                             f"some points")
+        b = np.clip(proj.bary, 0.0, None)
         face[sl], bary[sl], dist[sl] = proj.face, b / b.sum(axis=1, keepdims=True), proj.signed_distance
     return BodyPoints(face=face, bary=bary, distance=dist)
 

@@ -14,7 +14,7 @@ See docs/learn.md for the choices made where the thesis is silent and where we d
 """
 
 from simgen.learn.checkpoint import check_identity, load_model, model_size_mb, read_config, save_model
-from simgen.learn.collision import DEFAULT_CLEARANCE, BodySurface, closest_point_on_triangles, push_out
+from simgen.learn.collision import DEFAULT_CLEARANCE, CollisionSurface, push_out
 from simgen.learn.data import (SPLIT_MODES, GarmentData, SequenceData, Split, attach_ground_truth, load_garment_data,
                                make_split, stack_sequences)
 from simgen.learn.evaluate import THESIS, evaluate_garment, format_summary, time_inference
@@ -33,6 +33,6 @@ __all__ = [
     "attach_ground_truth", "make_split", "stack_sequences", "FitConfig", "WrinkleConfig", "TrainResult",
     "train_fit", "train_wrinkle", "fit_linear_baselines", "save_template", "evaluate_garment", "format_summary",
     "time_inference", "THESIS", "save_model", "load_model", "read_config", "check_identity", "model_size_mb",
-    "BodySurface", "push_out", "closest_point_on_triangles", "DEFAULT_CLEARANCE", "FEATURE_MODES",
+    "CollisionSurface", "push_out", "DEFAULT_CLEARANCE", "FEATURE_MODES",
     "feature_size", "motion_features", "lbs_torch", "inverse_lbs_torch",
 ]

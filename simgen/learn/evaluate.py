@@ -8,8 +8,9 @@
   simulations S_c(beta, 0)) and on a motion (the held-out motion's sequences of every shape)
   (Fig. 4.6; the thesis sweeps the shape within one simulation, our stores hold one shape per
   simulation, so each point is one simulation);
-- the share of garment vertices inside the body (winding-number test of
-  :func:`simgen.body.surface.project_to_surface`, independent of the post-process's own query),
+- the share of garment vertices inside the body (the winding-number sign of the body-surface
+  query, :func:`simgen.body.surface.project_to_surface`; the post-process pushes out by the
+  pseudo-normal sign, which can disagree where the posed body intersects itself),
   with and without the post-process, and of the simulation itself for reference;
 - the energies of the predictions from ``simgen.physics`` (membrane, bending, gravity, contact)
   beside those of the simulation;
@@ -123,8 +124,7 @@ def _physics_terms(data: GarmentData, runs: list[dict], body, device) -> dict:
     is the garment template the solver used, the contact term the solver's own parameters.
     Returns {name: {term: mean}} plus "terms_info".
     """
-    from simgen.physics import BodySurface as PhysicsSurface
-    from simgen.physics import ClothRest, evaluate_sequence
+    from simgen.physics import BodySurface, ClothRest, evaluate_sequence
     from simgen.physics.sources import contact_params_from
 
     if data.material is None:
@@ -133,7 +133,7 @@ def _physics_terms(data: GarmentData, runs: list[dict], body, device) -> dict:
     params = contact_params_from(solver.get("config", solver))
     rest_shape = data.rest_template if data.rest_template is not None else data.template
     rest = ClothRest.from_mesh(rest_shape, data.faces, data.material, dtype=torch.float64)
-    surface = PhysicsSurface(body.faces, body.v_template)
+    surface = BodySurface(body.faces, body.v_template)
     sums: dict[str, dict[str, list]] = {}
     for run in runs:
         for name, pos in run["sets"].items():

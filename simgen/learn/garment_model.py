@@ -27,7 +27,7 @@ from torch import nn
 
 from simgen.errors import InputError
 from simgen.learn.checkpoint import load_model
-from simgen.learn.collision import DEFAULT_CLEARANCE, BodySurface, push_out
+from simgen.learn.collision import DEFAULT_CLEARANCE, CollisionSurface, push_out
 from simgen.learn.features import motion_features
 from simgen.learn.models import GarmentFitMLP, GarmentTemplate, LinearRegressor, WrinkleGRU
 from simgen.learn.skinning import lbs_torch
@@ -114,7 +114,7 @@ class GarmentModel(nn.Module):
                              f"has {template.num_vertices}")
         self.template, self.fit, self.wrinkle = template, fit, wrinkle
         self.body = TorchBody(body)
-        self.surface = BodySurface(body.faces, body.num_vertices)
+        self.surface = CollisionSurface(body.faces, body.v_template)
         self.clearance = float(clearance)
         self.eval()
 

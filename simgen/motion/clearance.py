@@ -33,7 +33,7 @@ import copy
 import numpy as np
 
 from simgen.body.model import SMPL_JOINT_NAMES, BodyModel
-from simgen.body.surface import vertex_normals
+from simgen.body.surface import SurfaceMesh, vertex_normals
 from simgen.errors import InputError
 from simgen.motion.clip import MotionClip
 from simgen.rotations import axis_angle_to_matrix, matrix_to_axis_angle
@@ -48,35 +48,16 @@ _OBSTACLE_PARTS = (0, 3, 4)  # torso, left leg, right leg
 
 
 class _Obstacle:
-    """Torso-and-legs surface of one posed frame: winding-number sign and closest points (Warp, CPU)."""
+    """Torso-and-legs surface of one posed frame (winding-number sign, Warp on the CPU)."""
 
     def __init__(self, vertices: np.ndarray, faces: np.ndarray):
-        import warp as wp
-
-        from simgen.body import _surface_kernels as kernels
-
-        wp.config.quiet = True
-        wp.init()
-        self._wp, self._kernel = wp, kernels.closest_point_kernel
-        self.mesh = wp.Mesh(points=wp.array(vertices, dtype=wp.vec3, device="cpu"),
-                            indices=wp.array(faces.reshape(-1).astype(np.int32), dtype=wp.int32, device="cpu"),
-                            support_winding_number=True)
+        self.surface = SurfaceMesh(vertices, faces)
 
     def query(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Depth [m] of each point inside (0 outside), (P,), and the unit way out, (P, 3)."""
-        wp = self._wp
-        n = len(points)
-        sd = wp.zeros(n, dtype=float, device="cpu")
-        closest = wp.zeros(n, dtype=wp.vec3, device="cpu")
-        face = wp.zeros(n, dtype=wp.int32, device="cpu")
-        bary = wp.zeros(n, dtype=wp.vec3, device="cpu")
-        wp.launch(self._kernel, dim=n, inputs=[self.mesh.id, wp.array(points, dtype=wp.vec3, device="cpu"), 10.0],
-                  outputs=[sd, closest, face, bary], device="cpu")
-        sd, c = sd.numpy().astype(np.float64), closest.numpy().astype(np.float64)
-        depth = np.maximum(-sd, 0.0)
-        way = c - points
-        way /= np.maximum(np.linalg.norm(way, axis=1, keepdims=True), 1e-12)
-        return depth, way
+        """Depth [m] of each point inside (0 outside), (P,), and the unit way out (the outward
+        normal of the distance field: towards the closest surface point from inside), (P, 3)."""
+        proj = self.surface.project(points)
+        return np.maximum(-proj.signed_distance, 0.0), proj.normal
 
 
 class _Setup:

@@ -26,7 +26,8 @@ from simgen.physics.membrane import green_strain, membrane
 from simgen.physics.bending import bending
 from simgen.physics.gravity import GravityParams, gravity
 from simgen.physics.inertia import inertia, inertia_sequence, predict
-from simgen.physics.contact import BodyDistance, BodySurface, ContactParams, body_distance, contact
+from simgen.physics.surface_query import BodyDistance, BodySurface, body_distance
+from simgen.physics.contact import ContactParams, contact
 from simgen.physics.friction import FrictionParams, LaggedContact, friction
 from simgen.physics.potential import incremental_potential, snug_loss
 from simgen.physics.evaluate import (COLUMNS, NORMALISATIONS, PhysicsReport, compare_potentials, evaluate_sequence,

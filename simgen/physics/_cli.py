@@ -59,7 +59,7 @@ def eval_physics(sources, *, out: Path, lbs: bool = False, split: str | None = N
     import torch
 
     from simgen._fileio import atomic_write_bytes
-    from simgen.physics.contact import BodySurface
+    from simgen.physics.surface_query import BodySurface
     from simgen.physics.evaluate import NORMALISATIONS, compare_potentials, evaluate_sequence, write_csv
     from simgen.physics.plot import have_matplotlib, plot_potentials, plot_terms
     from simgen.params import ContactParams

@@ -36,11 +36,12 @@ import torch
 
 from simgen.errors import InputError
 from simgen.physics.bending import bending
-from simgen.physics.contact import BodySurface, body_distance, contact
+from simgen.physics.contact import contact
 from simgen.physics.gravity import gravity
 from simgen.physics.inertia import inertia, predict
 from simgen.physics.membrane import membrane
 from simgen.physics.rest import ClothRest
+from simgen.physics.surface_query import BodySurface, body_distance
 from simgen.params import ContactParams, GravityParams
 
 __all__ = ["PhysicsReport", "evaluate_sequence", "compare_potentials", "write_csv", "COLUMNS", "ENERGY_COLUMNS",

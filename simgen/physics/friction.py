@@ -21,8 +21,8 @@ import torch
 
 from simgen.errors import InputError
 from simgen.physics._common import like, reduce_frames
-from simgen.physics.contact import BodySurface, body_distance
 from simgen.physics.rest import ClothRest
+from simgen.physics.surface_query import BodySurface, body_distance
 from simgen.params import ContactParams, FrictionParams
 
 __all__ = ["LaggedContact", "friction", "FrictionParams"]
@@ -48,7 +48,7 @@ class LaggedContact:
         with torch.no_grad():
             dist = body_distance(x_start.detach(), body_start, surface)
             d = dist.distance
-            inside = (d < params.margin) & (dist.unsigned < params.query_distance)
+            inside = (d < params.margin) & (d.abs() < params.query_distance)
             force = torch.where(inside, params.stiffness * params.power
                                 * torch.clamp(params.margin - d, min=0.0) ** (params.power - 1.0),
                                 torch.zeros_like(d))

@@ -16,12 +16,13 @@ import torch
 from simgen.errors import InputError
 from simgen.physics._common import reduce_frames
 from simgen.physics.bending import bending
-from simgen.physics.contact import BodyDistance, BodySurface, body_distance, contact
+from simgen.physics.contact import contact
 from simgen.physics.friction import FrictionParams, LaggedContact, friction
 from simgen.physics.gravity import gravity
 from simgen.physics.inertia import inertia, predict
 from simgen.physics.membrane import membrane
 from simgen.physics.rest import ClothRest
+from simgen.physics.surface_query import BodyDistance, BodySurface, body_distance
 from simgen.params import ContactParams, GravityParams
 
 __all__ = ["incremental_potential", "snug_loss", "STATIC_TERMS"]

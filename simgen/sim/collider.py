@@ -22,7 +22,9 @@ import warp as wp
 
 from simgen.errors import InputError
 from simgen.sim.warp_toolkit import module_name, scalar_types
-from simgen.sim.energies.contact import ContactParams, contact_funcs, part_inputs
+from simgen.body.surface_query import contact_funcs
+from simgen.params import ContactParams
+from simgen.sim.energies.contact import part_inputs
 
 __all__ = ["BodyCollider", "collider_kernels"]
 
@@ -130,7 +132,7 @@ class BodyCollider:
     - meshes: list of I ``wp.Mesh``; mesh_ids: (I,) uint64 warp array for the energy kernels.
     - part_masks: (Fb,) int32 warp array of body part bit masks per face
       (:func:`simgen.body.parts.face_part_masks`), or None: contact's part rule (where the body
-      intersects itself, :mod:`simgen.sim.energies.contact`) is on only with them.
+      intersects itself, :mod:`simgen.body.surface_query`) is on only with them.
 
     Body vertices are float32 (``wp.Mesh`` is); cloth models of either scalar type can use it.
     """

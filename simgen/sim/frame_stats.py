@@ -3,12 +3,12 @@ on it (:mod:`simgen.sim.placement`), for every instance at every frame.
 
 Self-intersection rule: a cloth vertex inside the body (by the generalised winding number, > 0.5)
 counts as *at a body self-intersection* when (a) its closest body point, moved
-``self_intersection_probe`` (2 mm) outward along the contact normal, is still inside the body: a
+``SELF_INTERSECTION_PROBE`` (2 mm) outward along the contact normal, is still inside the body: a
 closest surface buried in another body part (arm in torso at the armpit, thigh in thigh at the
 crotch) cannot be exited along its normal, and the projection cannot resolve such vertices; or (b)
 the solver's contact, with its body part rule, sees it outside: cloth lying on its own part where
 another part presses into that one (a forearm sunk into the belly) is kept on its own part and
-so lies inside the other (:mod:`simgen.sim.energies.contact`).
+so lies inside the other (the part rule of :mod:`simgen.body.surface_query`).
 """
 
 from __future__ import annotations
@@ -16,8 +16,10 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
+from simgen.body.surface_query import SELF_INTERSECTION_PROBE, classify_inside
+from simgen.params import ContactParams
 from simgen.sim.collider import BodyCollider
-from simgen.sim.energies.contact import contact_funcs, part_inputs
+from simgen.sim.energies.contact import part_inputs
 from simgen.sim.model import ClothModel
 
 __all__ = ["FRAME_STAT_KEYS", "FrameStats", "stack_stats"]
@@ -43,75 +45,19 @@ FRAME_STAT_KEYS = (
 )
 
 
-_body_contact = contact_funcs(wp.float32).body_contact
-
-
-@wp.kernel(enable_backward=False)
-def _classify_inside(
-    x: wp.array(dtype=wp.vec3),
-    vertex_instance: wp.array(dtype=wp.int32),
-    winding_meshes: wp.array(dtype=wp.uint64),
-    query_distance: float,
-    probe: float,
-    vertex_part: wp.array(dtype=wp.int32),
-    part_masks: wp.array(dtype=wp.int32),
-    use_parts: int,
-    pinch_distance: float,
-    distance: wp.array(dtype=wp.float32),
-    depth: wp.array(dtype=wp.float32),
-    inside: wp.array(dtype=wp.int32),
-    self_hit: wp.array(dtype=wp.int32),
-):
-    # distance[i] = unsigned distance to the body surface (query_distance where farther); depth[i]
-    # = that distance if inside, else 0; self_hit[i] = 1 if inside at a self-intersection.
-    # Inside/outside by the generalised winding number, which stays right where body parts
-    # overlap (a normal-based sign there reads the other part's outside).
-    i = wp.tid()
-    distance[i] = query_distance
-    depth[i] = 0.0
-    inside[i] = 0
-    self_hit[i] = 0
-    xi = x[i]
-    winding_mesh = winding_meshes[vertex_instance[i]]
-    q = wp.mesh_query_point_sign_winding_number(winding_mesh, xi, query_distance, 2.0, 0.5)
-    if not q.result:
-        return
-    p = wp.mesh_eval_position(winding_mesh, q.face, q.u, q.v)
-    d = wp.length(p - xi)
-    distance[i] = d
-    if q.sign > 0.0:
-        return
-    depth[i] = d
-    inside[i] = 1
-    n = wp.vec3(0.0)
-    if d > 1.0e-9:
-        n = (p - xi) / d
-    else:
-        a = wp.mesh_get_point(winding_mesh, q.face * 3 + 0)
-        b = wp.mesh_get_point(winding_mesh, q.face * 3 + 1)
-        c = wp.mesh_get_point(winding_mesh, q.face * 3 + 2)
-        n = wp.normalize(wp.cross(b - a, c - a))
-    w = wp.mesh_query_point_sign_winding_number(winding_mesh, p + probe * n, query_distance + probe, 2.0, 0.5)
-    if w.result and w.sign < 0.0:
-        self_hit[i] = 1
-    elif use_parts != 0:
-        found, dc, nc, fc, uc, vc, own = _body_contact(winding_mesh, part_masks, vertex_part[i], xi, query_distance,
-                                                  pinch_distance)
-        if found != 0 and dc >= 0.0:
-            self_hit[i] = 1
-
-
 class FrameStats:
     """Per-frame statistics of every instance: penetration, and whether the garment is on the body
     (:mod:`simgen.sim.placement`) at the output frame."""
 
-    def __init__(self, model: ClothModel, collider: BodyCollider, wbody, garment, body, *, query_distance: float,
-                 self_intersection_probe: float, pinch_distance: float) -> None:
+    def __init__(self, model: ClothModel, collider: BodyCollider, wbody, garment, body, *,
+                 contact: ContactParams) -> None:
+        """contact: the solver's contact parameters (its part rule's pinch_distance; the query reaches
+        its query_distance [m], at least the placement's on-body distance)."""
         from simgen.sim.placement import ON_BODY_DISTANCE, garment_reference
 
         dev = model.device
         self.model, self.collider, self.wbody = model, collider, wbody
-        self.probe, self.pinch_distance = float(self_intersection_probe), float(pinch_distance)
+        self.pinch_distance = float(contact.pinch_distance)
         n = model.num_vertices
         self.distance = wp.zeros(n, dtype=wp.float32, device=dev)
         self.depth = wp.zeros(n, dtype=wp.float32, device=dev)
@@ -125,7 +71,7 @@ class FrameStats:
             for k in range(collider.num_instances)]
         self.winding_ids = wp.array([m.id for m in self.winding_meshes], dtype=wp.uint64, device=dev)
         self.starts = np.asarray(model.vertex_start)
-        self.query_distance = max(float(query_distance), ON_BODY_DISTANCE)
+        self.query_distance = max(float(contact.query_distance), ON_BODY_DISTANCE)
         # The garment's LBS positions: its template on each instance's shape, posed on the device by
         # the body's own skinning kernel with the garment's weights.
         self.reference = garment_reference(garment, body)
@@ -148,9 +94,9 @@ class FrameStats:
         for m in self.winding_meshes:
             m.refit()
         model = self.model
-        wp.launch(_classify_inside, dim=model.num_vertices, device=model.device,
+        wp.launch(classify_inside, dim=model.num_vertices, device=model.device,
                   inputs=[positions, model.vertex_instance, self.winding_ids, self.query_distance,
-                          self.probe,
+                          SELF_INTERSECTION_PROBE,
                           *part_inputs(model, self.collider.part_masks, self.pinch_distance),
                           self.distance, self.depth, self.inside, self.self_hit])
         if self.betas is None or not np.array_equal(self.betas, betas):

@@ -138,7 +138,7 @@ class ClothModelBuilder:
         bending_rest: "template" (rest angle = the template's dihedral angle) or "flat" (0, as SNUG).
         body_part: optional int shape (V,), each vertex's home body part for contact where the body
           intersects itself (:func:`simgen.body.parts.vertex_parts` of the garment's skinning
-          weights; :mod:`simgen.sim.energies.contact`); None leaves that rule off.
+          weights; the part rule of :mod:`simgen.body.surface_query`); None leaves that rule off.
         attachment: optional :class:`~simgen.garment.waistband.Attachment`: vertices tied to points
           of the body surface by springs (:mod:`simgen.sim.energies.attachment`).
         name: label for reports (default "instance<k>").
