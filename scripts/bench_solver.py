@@ -69,8 +69,7 @@ def solver_config(self_contact: bool, newton_iterations: int = 1):
     from simgen.sim import SolverConfig
     from simgen.sim.energies import SelfContactParams
 
-    return SolverConfig(projection_offset=2.0e-4, self_contact=SelfContactParams() if self_contact else None,
-                        newton_iterations=newton_iterations)
+    return SolverConfig(self_contact=SelfContactParams() if self_contact else None, newton_iterations=newton_iterations)
 
 
 def run_motion(garment, body, motion: str, n: int, *, device: str, frames: int, substeps: int,

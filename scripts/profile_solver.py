@@ -58,8 +58,7 @@ def profile(garment, body, n: int, *, device: str, frames: int, substeps: int, f
     from simgen.sim import BodyCollider, ClothModel, ImplicitSolver, SolverConfig
     from simgen.sim.energies import SelfContactParams
 
-    material, config = None, SolverConfig(projection_offset=2.0e-4,
-                                          self_contact=SelfContactParams() if self_contact else None)
+    material, config = None, SolverConfig(self_contact=SelfContactParams() if self_contact else None)
     if preset is not None:
         sim_config = preset.solver_config()
         material, config = sim_config.resolve_material(garment), sim_config.solver

@@ -7,7 +7,6 @@ stderr naming the file, field or value, and exit code 2 (never a traceback). Hea
 
 from __future__ import annotations
 
-import dataclasses
 import sys
 from pathlib import Path
 from typing import Optional
@@ -148,7 +147,7 @@ def demo(
     clip = load_motion(motion)
     frames = min(int(round(seconds * clip.fps)) + 1, clip.num_frames)
     _simulate_and_write(garment=garment, motion=motion, body=body, betas=betas, material=None, device=device,
-                        frames=frames, substeps=10, out=out, video=video)
+                        frames=frames, substeps=None, out=out, video=video)
 
 
 # --------------------------------------------------------------------------------------------- body
@@ -394,21 +393,25 @@ def simulate(
                                            help="Material preset (cotton, interlock, denim, silk); default: the garment's."),
     device: Optional[str] = typer.Option(None, "--device", help="Warp device: cpu or cuda (default: Warp's)."),
     frames: Optional[int] = typer.Option(None, "--frames", help="Simulate only the first N frames of the clip."),
-    substeps: int = typer.Option(10, "--substeps", help="Solver steps per frame (10 at 30 fps: 3.33 ms)."),
-    newton_iterations: int = typer.Option(
-        1, "--newton-iterations", help="Newton iterations per substep (1: ARCSim's; 2 keeps fast limbs from "
-                                       "flicking single cloth vertices for a frame; each is one more assembly "
-                                       "and solve)."),
+    # The solver flags default to None: SimulationConfig's / SolverConfig's own defaults and bounds
+    # apply (simgen.sim.config declares them; checked with the flag's name before anything runs).
+    substeps: Optional[int] = typer.Option(
+        None, "--substeps", help="Solver steps per frame (SimulationConfig.substeps; the thesis: 10 at 30 fps, "
+                                 "3.33 ms)."),
+    newton_iterations: Optional[int] = typer.Option(
+        None, "--newton-iterations", help="Newton iterations per substep (SolverConfig.newton_iterations; "
+                                          "ARCSim: 1; 2 keeps fast limbs from flicking single cloth vertices "
+                                          "for a frame; each is one more assembly and solve)."),
     strain_limit: Optional[float] = typer.Option(
         None, "--strain-limit", help="Largest principal stretch - 1 any triangle may keep after a substep "
-                                     "(e.g. 0.5; default: no limit). Stops the one-frame spikes of cloth squeezed "
-                                     "between body parts."),
-    constraint_rounds: int = typer.Option(
-        1, "--constraint-rounds", help="How many times the strain limiter and the body projection alternate "
-                                       "after each substep (2 in the thesis presets: the projection re-stretches "
-                                       "what the limiter bounded)."),
+                                     "(SolverConfig.strain_limit, e.g. 0.5; unset: no limit). Stops the "
+                                     "one-frame spikes of cloth squeezed between body parts."),
+    constraint_rounds: Optional[int] = typer.Option(
+        None, "--constraint-rounds", help="How many times the strain limiter and the body projection alternate "
+                                          "after each substep (SolverConfig.constraint_rounds; 2 in the thesis "
+                                          "presets: the projection re-stretches what the limiter bounded)."),
     self_contact: bool = typer.Option(False, "--self-contact/--no-self-contact",
-                                      help="Cloth-cloth vertex-triangle repulsion (2 mm thickness)."),
+                                      help="Cloth-cloth vertex-triangle repulsion (SelfContactParams' defaults)."),
     out: Path = typer.Option(Path("simgen-sim"), "--out", help="Output folder."),
     video: bool = typer.Option(True, "--video/--no-video", help="Render an MP4 (and a PNG preview)."),
 ) -> None:
@@ -423,25 +426,28 @@ def simulate(
 
 
 def _simulate_and_write(*, garment: str, motion: str, body: str, betas: Optional[str], material: Optional[str],
-                        device: Optional[str], frames: Optional[int], substeps: int, out: Path, video: bool,
-                        self_contact: bool = False, newton_iterations: int = 1,
-                        strain_limit: Optional[float] = None, constraint_rounds: int = 1) -> None:
+                        device: Optional[str], frames: Optional[int], substeps: Optional[int], out: Path, video: bool,
+                        self_contact: bool = False, newton_iterations: Optional[int] = None,
+                        strain_limit: Optional[float] = None, constraint_rounds: Optional[int] = None) -> None:
+    """Solver flags left None take SolverConfig's / SimulationConfig's defaults."""
     import numpy as np
 
     from simgen.garment import load_garment
     from simgen.motion import load_motion
-    from simgen.sim import SimulationConfig, get_material
+    from simgen.settings import check_value
+    from simgen.sim import SimulationConfig, SolverConfig, get_material
     from simgen.sim import simulate as run_simulation
 
     beta_values = parse_betas(betas)
     if frames is not None and frames < 1:
         raise InputError(f"--frames must be at least 1, got {frames}")
-    if newton_iterations < 1:
-        raise InputError(f"--newton-iterations must be at least 1, got {newton_iterations}")
-    if strain_limit is not None and not strain_limit > 0:
-        raise InputError(f"--strain-limit must be a number > 0, got {strain_limit}")
-    if constraint_rounds < 1:
-        raise InputError(f"--constraint-rounds must be at least 1, got {constraint_rounds}")
+    flags = {"newton_iterations": ("--newton-iterations", newton_iterations),
+             "strain_limit": ("--strain-limit", strain_limit),
+             "constraint_rounds": ("--constraint-rounds", constraint_rounds)}
+    solver_options = {name: check_value(SolverConfig, name, value, flag)
+                      for name, (flag, value) in flags.items() if value is not None}
+    if substeps is not None:
+        check_value(SimulationConfig, "substeps", substeps, "--substeps")
     if material is not None:
         get_material(material)
     if device is not None and device not in ("cpu", "cuda") and not device.startswith("cuda:"):
@@ -450,14 +456,13 @@ def _simulate_and_write(*, garment: str, motion: str, body: str, betas: Optional
     model.check_betas(beta_values or [0.0])
     cloth = load_garment(garment, body=model)
     clip = load_motion(motion)
-    solver = dataclasses.replace(SimulationConfig().solver, newton_iterations=newton_iterations,
-                                 strain_limit=strain_limit, constraint_rounds=constraint_rounds)
     if self_contact:
-        from simgen.sim.energies import SelfContactParams
+        from simgen.params import SelfContactParams
 
-        solver = dataclasses.replace(solver, self_contact=SelfContactParams())
-    config = SimulationConfig(substeps=substeps, material=material, record_body=True, solver=solver,
-                              device="cuda:0" if device == "cuda" else device)
+        solver_options["self_contact"] = SelfContactParams()
+    config = SimulationConfig(material=material, record_body=True, solver=SolverConfig(**solver_options),
+                              device="cuda:0" if device == "cuda" else device,
+                              **({"substeps": substeps} if substeps is not None else {}))
     total = config.relax_frames + config.ramp_frames + config.rest_frames + min(frames or clip.num_frames,
                                                                               clip.num_frames)
     progress, update = _progress(f"simulating {cloth.name} ({clip.name})", total)

@@ -65,7 +65,14 @@ def test_tiny_is_small():
     (minimal(solver={"cg_iterations": 2.5}), "solver.cg_iterations"),
     (minimal(solver={"self_contact": "on"}), "solver.self_contact"),
     (minimal(solver={"device": "tpu"}), "solver.device"),
-    (minimal(solver={"contact_stiffness": 0.0}), "solver.contact_stiffness"),
+    (minimal(solver={"contact": {"stiffness": 0.0}}), "solver.contact.stiffness"),
+    (minimal(solver={"contact_stiffness": 1e5}), "solver.contact_stiffness"),
+    (minimal(solver={"contact": {"stifness": 1e5}}), "solver.contact.stifness"),
+    (minimal(solver={"contact": 1e5}), "solver.contact"),
+    (minimal(solver={"friction": {"max_normal_load": -1.0}}), "solver.friction.max_normal_load"),
+    (minimal(solver={"self_contact": {"max_candidates": 0}}), "solver.self_contact.max_candidates"),
+    (minimal(solver={"gravity": {"gravity": [0.0, -9.81]}}), "solver.gravity.gravity"),
+    (minimal(solver={"armijo": 0.0}), "solver.armijo"),
     (minimal(solver={"constraint_rounds": 0}), "solver.constraint_rounds"),
     (minimal(solver={"limiter_half_space": True}), "solver.limiter_half_space"),
     (minimal(solver={"guard_energy": "off"}), "solver.guard_energy"),
@@ -193,11 +200,88 @@ def test_self_contact_option_reaches_the_solver_and_only_then_the_store_key():
     assert on.content_hash("tshirt_1k") != off.content_hash("tshirt_1k")
 
 
-def test_contact_stiffness_and_constraint_rounds_reach_the_solver():
-    default, spec = parse_spec(minimal()), parse_spec(minimal(solver={"contact_stiffness": 1e5,
-                                                                       "constraint_rounds": 2}))
+def test_contact_table_and_constraint_rounds_reach_the_solver():
+    default = parse_spec(minimal())
+    spec = parse_spec(minimal(solver={"contact": {"stiffness": 1e5}, "constraint_rounds": 2}))
     assert default.solver_config().solver.contact.stiffness == 1e4
     solver = spec.solver_config().solver
     assert solver.contact.stiffness == 1e5 and solver.constraint_rounds == 2
     assert solver.contact.margin == default.solver_config().solver.contact.margin  # the rest unchanged
     assert spec.content_hash("tshirt_1k") != default.content_hash("tshirt_1k")
+    # The sub-table enters the store key under its one-level name, so stores made when the spec
+    # field was solver.contact_stiffness keep their key.
+    assert spec.content_key("tshirt_1k")["solver"] == {"contact_stiffness": 1e5, "constraint_rounds": 2}
+    assert spec.to_dict()["solver"] == {"contact": {"stiffness": 1e5}, "constraint_rounds": 2}
+
+
+def test_old_flat_contact_field_says_where_it_went():
+    with pytest.raises(InputError, match=r"unknown field 'solver.contact_stiffness' \(it is now "
+                                         r"'solver.contact.stiffness': stiffness in a \[solver.contact\] table\)"):
+        parse_spec(minimal(solver={"contact_stiffness": 1e5}), source="old.toml")
+    with pytest.raises(InputError, match=r"unknown field 'solver.contact.stifness' \(did you mean "
+                                         r"'solver.contact.stiffness'\?\)"):
+        parse_spec(minimal(solver={"contact": {"stifness": 1e5}}), source="typo.toml")
+
+
+def test_parameter_sub_tables_and_switches():
+    """friction and self_contact: true/false or a table of their fields (then on); contact and
+    gravity: tables; checks across a class's fields run when the spec is read."""
+    from simgen.params import FrictionParams, SelfContactParams
+
+    off = parse_spec(minimal(solver={"friction": False}))
+    assert off.friction is False and off.solver_config().solver.friction is None
+    capped = parse_spec(minimal(solver={"friction": {"max_normal_load": float("inf")}}))
+    assert capped.friction is True
+    assert capped.solver_config().solver.friction == FrictionParams(max_normal_load=float("inf"))
+    thick = parse_spec(minimal(solver={"self_contact": {"thickness": 3e-3, "search_radius": 2e-2}}))
+    assert thick.self_contact is True
+    assert thick.solver_config().solver.self_contact == SelfContactParams(thickness=3e-3, search_radius=2e-2)
+    assert thick.content_key("tshirt_1k")["self_contact"] is True
+    assert parse_spec(minimal(solver={"self_contact": True})).solver_config().solver.self_contact == \
+        SelfContactParams()
+    moon = parse_spec(minimal(solver={"gravity": {"gravity": [0, -1.62, 0]}}))
+    assert moon.solver_config().solver.gravity.gravity == (0.0, -1.62, 0.0)
+    # An empty table is the defaults: the same store as none.
+    assert parse_spec(minimal(solver={"contact": {}})).content_hash("x") == parse_spec(minimal()).content_hash("x")
+    with pytest.raises(InputError, match=r"spec bad.toml: table 'solver.contact': contact pinch_distance"):
+        parse_spec(minimal(solver={"contact": {"margin": 1e-2}}), source="bad.toml")
+
+
+def test_solver_table_covers_solver_config():
+    """Every SolverConfig field can be set in [solver] with the declaration's bounds and default
+    (its own substeps aside: a spec's substeps is the frame's, SimulationConfig.substeps)."""
+    from simgen.dataset.spec import simulation_settings, solver_settings
+    from simgen.settings import settings_of
+    from simgen.sim import SimulationConfig, SolverConfig
+
+    assert set(solver_settings()) == set(settings_of(SolverConfig))
+    assert simulation_settings()["substeps"] is settings_of(SimulationConfig)["substeps"]
+    spec = parse_spec(minimal())
+    # Defaults: a spec that sets nothing gets the dataclasses' defaults.
+    assert spec.solver_options() == SolverConfig()
+    cfg = spec.solver_config()
+    sim = SimulationConfig()
+    assert (cfg.substeps, cfg.relax_frames, cfg.ramp_frames, cfg.rest_frames) == \
+        (sim.substeps, sim.relax_frames, sim.ramp_frames, sim.rest_frames)
+    assert cfg.solver == sim.solver
+    # Each scalar field reaches the SolverConfig.
+    every = {"newton_iterations": 3, "newton_tolerance": 1e-6, "cg_iterations": 7, "cg_tolerance": 1e-4,
+             "line_search": True, "line_search_steps": 3, "armijo": 1e-3, "floor": -1.0,
+             "strain_limit": 0.3, "strain_limit_iterations": 4, "project": False, "projection_offset": 1e-4,
+             "constraint_rounds": 3, "guard": False, "max_retries": 2, "max_speed": 20.0, "divergence_ratio": 5.0,
+             "guard_energy": False}
+    assert set(every) == {k for k, s in solver_settings().items() if not s.nested}
+    solver = parse_spec(minimal(solver=every)).solver_options()
+    assert all(getattr(solver, k) == v for k, v in every.items())
+
+
+@pytest.mark.parametrize("table, key", [("solver", k) for k in ("newton_iterations", "cg_iterations",
+                                                                 "projection_offset", "strain_limit", "max_speed")]
+                         + [("protocol", "ramp_frames"), ("protocol", "relax_frames")])
+def test_bad_bounded_value_names_the_field(table, key):
+    from simgen.dataset.spec import simulation_settings, solver_settings
+
+    s = {**solver_settings(), **simulation_settings()}[key]
+    bad = s.low - 1 if s.kind is int else -1.0
+    with pytest.raises(InputError, match=rf"spec b.toml: field '{table}.{key}' must be .*, got {bad!r}"):
+        parse_spec(minimal(**{table: {key: bad}}), source="b.toml")

@@ -35,14 +35,21 @@ Layout (every table and field optional except ``garment.names``)::
     start_frame = 0                           # first frame used of every clip
     max_frames = 0                            # frames kept per clip (0: all)
 
-    [solver]                                  # simgen.sim.SolverConfig scalar fields (SOLVER_FIELDS), plus:
+    [solver]
     device = "auto"                           # "auto" | "cpu" | "cuda" | "cuda:N"
     fps = 30.0                                # output frames per second (clips are resampled to it)
-    substeps = 10                             # solver steps per frame (3.33 ms at 30 fps)
-    friction = true                           # false: no cloth-body friction
+    substeps = 10                             # solver steps per frame (SimulationConfig.substeps)
+    newton_iterations = 2                     # e.g.: any other simgen.sim.SolverConfig field, with its
+    strain_limit = 0.5                        # name, bounds and default (solver_settings(); SolverConfig's
+                                              # docstring lists them; TOML has no None: unset is the default)
+    friction = true                           # false: no cloth-body friction (or a [solver.friction] table)
+    self_contact = false                      # true: cloth-cloth repulsion (or a [solver.self_contact] table)
+
+    [solver.contact]                          # e.g.: a parameter class of SolverConfig (contact, gravity,
+    stiffness = 1.0e5                         # friction, self_contact) as a table of its fields (simgen.params)
 
     [protocol]                                # thesis section 4.3.1 (see simgen.sim.driver)
-    relax_frames = 15
+    relax_frames = 15                         # these three: simgen.sim.SimulationConfig's fields
     ramp_frames = 30
     rest_frames = 15
     store_rest_frames = true                  # keep the rest-phase frames of every sequence and fit
@@ -71,6 +78,7 @@ from __future__ import annotations
 import copy
 import difflib
 import fnmatch
+import functools
 import glob
 import hashlib
 import json
@@ -81,36 +89,53 @@ from dataclasses import dataclass, field, fields
 from pathlib import Path
 
 from simgen.errors import InputError
+from simgen.settings import Setting, settings_of
 
 __all__ = [
     "DatasetSpec", "ShapeSpec", "MotionEntry", "load_spec", "parse_spec", "list_presets", "preset_path",
-    "PRESETS_DIR", "ID_PATTERN", "SOLVER_FIELDS",
+    "PRESETS_DIR", "ID_PATTERN", "solver_settings", "simulation_settings",
 ]
 
 PRESETS_DIR = Path(__file__).resolve().parent / "presets"
 ID_PATTERN = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]*$")
 
-# SolverConfig fields a spec may set: name -> (type, lower bound, inclusive).
-SOLVER_FIELDS: dict[str, tuple[type, float | None, bool]] = {
-    "newton_iterations": (int, 1, True),
-    "newton_tolerance": (float, 0.0, True),
-    "cg_iterations": (int, 1, True),
-    "cg_tolerance": (float, 0.0, True),
-    "line_search": (bool, None, True),
-    "line_search_steps": (int, 1, True),
-    "project": (bool, None, True),
-    "projection_offset": (float, 0.0, True),
-    "guard": (bool, None, True),
-    "guard_energy": (bool, None, True),
-    "max_retries": (int, 0, True),
-    "max_speed": (float, 0.0, False),
-    "divergence_ratio": (float, 0.0, False),
-    "damping": (bool, None, True),
-    "strain_limit": (float, 0.0, False),
-    "strain_limit_iterations": (int, 1, True),
-    "constraint_rounds": (int, 1, True),
-    "contact_stiffness": (float, 0.0, False),   # ContactParams.stiffness [J/m^3]
-}
+# The [solver] keys that are the spec's own; the others come from SolverConfig and SimulationConfig.
+_SPEC_SOLVER = ("device", "fps")
+# SimulationConfig fields a spec sets, by table (name, bounds and default from their declarations).
+_SIMULATION_FIELDS = {"solver": ("substeps",), "protocol": ("relax_frames", "ramp_frames", "rest_frames")}
+
+
+@functools.cache
+def solver_settings() -> dict[str, Setting]:
+    """The [solver] keys that set :class:`simgen.sim.SolverConfig` fields: every field, with the
+    declaration's type, bounds and default (``substeps`` there is SimulationConfig's, the frame's). A nested parameter class (contact, gravity, friction,
+    self_contact) is the sub-table [solver.NAME] of its own fields; an optional one (friction,
+    self_contact) may instead be true or false, kept in the DatasetSpec field of that name.
+    """
+    from simgen.sim.config import SolverConfig
+
+    return {k: v for k, v in settings_of(SolverConfig).items() if k not in _SPEC_SOLVER}
+
+
+@functools.cache
+def simulation_settings() -> dict[str, Setting]:
+    """The :class:`simgen.sim.SimulationConfig` fields a spec sets ([solver] substeps, [protocol] frames)."""
+    from simgen.sim.config import SimulationConfig
+
+    every = settings_of(SimulationConfig)
+    return {k: every[k] for keys in _SIMULATION_FIELDS.values() for k in keys}
+
+
+def _switches() -> tuple[str, ...]:
+    """SolverConfig's optional parameter classes (friction, self_contact): on/off DatasetSpec fields."""
+    return tuple(k for k, s in solver_settings().items() if s.nested and s.optional)
+
+
+def _flat_key(table: str, key: str) -> str:
+    """The one-level name of a sub-table field in the content key (contact.stiffness -> contact_stiffness,
+    the name the field had when specs were flat: the stores made then keep their key)."""
+    return f"{table}_{key}"
+
 
 _TOP = ("name", "description", "garment", "body", "shapes", "motions", "solver", "protocol", "smoothing",
         "execution", "output")
@@ -119,8 +144,8 @@ _SECTIONS = {
     "body": ("model",),
     "shapes": ("generator", "components", "values", "include_zero", "list"),
     "motions": ("library", "files", "test", "train", "start_frame", "max_frames"),
-    "solver": ("device", "fps", "substeps", "friction", "self_contact", *SOLVER_FIELDS),
-    "protocol": ("relax_frames", "ramp_frames", "rest_frames", "store_rest_frames"),
+    "solver": _SPEC_SOLVER + _SIMULATION_FIELDS["solver"],          # + solver_settings()
+    "protocol": _SIMULATION_FIELDS["protocol"] + ("store_rest_frames",),
     "smoothing": ("method", "iterations", "lambda", "mu", "boundary"),
     "execution": ("batch_size", "max_attempts", "chunk_frames", "overlap_writes", "retry_strain_outliers"),
     "output": ("path",),
@@ -171,13 +196,15 @@ class DatasetSpec:
     max_frames: int = 0
     device: str = "auto"
     fps: float = 30.0
-    substeps: int = 10
-    friction: bool = True
-    self_contact: bool = False
-    solver: dict = field(default_factory=dict)
-    relax_frames: int = 15
-    ramp_frames: int = 30
-    rest_frames: int = 15
+    # None until parse_spec sets them from the declarations of SimulationConfig (substeps, the
+    # protocol's frames) and SolverConfig (friction, self_contact: on unless its default is None).
+    substeps: int | None = None
+    friction: bool | None = None
+    self_contact: bool | None = None
+    solver: dict = field(default_factory=dict)     # the SolverConfig fields set; a sub-table as a dict
+    relax_frames: int | None = None
+    ramp_frames: int | None = None
+    rest_frames: int | None = None
     store_rest_frames: bool = True
     smoothing: dict = field(default_factory=lambda: {"method": "taubin", "iterations": 10, "lambda": 0.5,
                                                      "mu": -0.53, "boundary": "boundary"})
@@ -257,24 +284,27 @@ class DatasetSpec:
 
     def solver_config(self, *, substeps_factor: int = 1):
         """The :class:`simgen.sim.SimulationConfig` of every job (substeps multiplied on a retry)."""
-        from simgen.sim import SimulationConfig, SolverConfig
-        from simgen.sim.energies import SelfContactParams
+        from simgen.sim import SimulationConfig
 
-        kwargs = dict(self.solver)
-        if "contact_stiffness" in kwargs:
-            from simgen.sim.energies import ContactParams
-
-            kwargs["contact"] = ContactParams(stiffness=kwargs.pop("contact_stiffness"))
-        if not self.friction:
-            kwargs["friction"] = None
-        if self.self_contact:
-            kwargs["self_contact"] = SelfContactParams()
-        kwargs.setdefault("projection_offset", 2.0e-4)  # simulate()'s default: projected vertices count as outside
-        solver = SolverConfig(**kwargs)
         return SimulationConfig(
-            fps=self.fps, substeps=self.substeps * substeps_factor, solver=solver, material=self.material,
-            material_overrides=dict(self.material_overrides), relax_frames=self.relax_frames,
+            fps=self.fps, substeps=self.substeps * substeps_factor, solver=self.solver_options(),
+            material=self.material, material_overrides=dict(self.material_overrides), relax_frames=self.relax_frames,
             ramp_frames=self.ramp_frames, rest_frames=self.rest_frames, device=self.resolved_device())
+
+    def solver_options(self):
+        """The :class:`simgen.sim.SolverConfig` of the spec: its [solver] fields and sub-tables over the
+        declared defaults; friction / self_contact off (None) or on (the sub-table's fields, else the
+        class's defaults)."""
+        from simgen.sim.config import SolverConfig
+
+        settings = solver_settings()
+        kwargs = {k: settings[k].nested(**v) if settings[k].nested else v for k, v in self.solver.items()}
+        for key in _switches():
+            if not getattr(self, key):
+                kwargs[key] = None
+            elif key not in kwargs and settings[key].default is None:
+                kwargs[key] = settings[key].nested()
+        return SolverConfig(**kwargs)
 
     def resolved_device(self) -> str:
         """The Warp device: "auto" becomes cuda:0 when a CUDA device exists, else cpu."""
@@ -324,15 +354,20 @@ class DatasetSpec:
         cannot be resumed): garment, material, fps, solver, protocol, smoothing and frame range (the
         body enters by its hash, see :func:`simgen.dataset.generate.root_attrs`, so a moved model file
         still resumes). Shapes and motions may grow between runs; execution settings are free."""
+        solver = {}
+        for key, value in self.solver.items():
+            if isinstance(value, dict):   # a sub-table: one level, as when specs were flat
+                solver.update({_flat_key(key, k): v for k, v in value.items()})
+            else:
+                solver[key] = value
         return {
             "garment": garment, "material": self.material, "material_overrides": self.material_overrides,
             "fps": self.fps, "substeps": self.substeps, "friction": self.friction,
-            "solver": self.solver, "relax_frames": self.relax_frames, "ramp_frames": self.ramp_frames,
+            "solver": solver, "relax_frames": self.relax_frames, "ramp_frames": self.ramp_frames,
             "rest_frames": self.rest_frames, "store_rest_frames": self.store_rest_frames,
             "smoothing": self.smoothing, "start_frame": self.start_frame, "max_frames": self.max_frames,
-            # The floor (SolverConfig.floor's default; specs cannot change it) came with the
-            # waistbands: stores simulated without it cannot be resumed.
-            "floor": 0.0,
+            # The floor came with the waistbands: stores simulated without it cannot be resumed.
+            "floor": self.solver.get("floor", solver_settings()["floor"].default),
             # Only when on, so stores made before the option existed keep their key.
             **({"self_contact": True} if self.self_contact else {}),
         }
@@ -347,7 +382,7 @@ class DatasetSpec:
         shapes (list of shape ids to keep), material, output, overlap_writes, retry_strain_outliers.
         """
         d = copy.copy(self)
-        d.solver = dict(self.solver)
+        d.solver = copy.deepcopy(self.solver)
         for key, value in overrides.items():
             if value is None:
                 continue
@@ -390,20 +425,21 @@ class _Reader:
     def _got(self, value) -> str:
         return f"got {value!r} ({type(value).__name__})"
 
-    def get(self, key, default, kind, *, low=None, inclusive=True, choices=None):
+    def get(self, key, default, kind, *, low=None, high=None, inclusive=True, choices=None, finite=True):
         if key not in self.table:
             return default
         v = self.table[key]
+        bound = _bound(low, high, inclusive)
         if kind is bool:
             if not isinstance(v, bool):
                 raise self.err(key, f"must be true or false, {self._got(v)}")
             return v
         if kind is int:
             if isinstance(v, bool) or not isinstance(v, int):
-                raise self.err(key, f"must be an integer{_bound(low, inclusive)}, {self._got(v)}")
+                raise self.err(key, f"must be an integer{bound}, {self._got(v)}")
         elif kind is float:
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-                raise self.err(key, f"must be a finite number{_bound(low, inclusive)}, {self._got(v)}")
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or math.isnan(v) or (finite and math.isinf(v)):
+                raise self.err(key, f"must be a {'finite ' if finite else ''}number{bound}, {self._got(v)}")
             v = float(v)
         elif kind is str:
             if not isinstance(v, str) or not v:
@@ -411,9 +447,24 @@ class _Reader:
             if choices is not None and v not in choices:
                 raise self.err(key, f"must be one of {', '.join(map(repr, choices))}, got {v!r}")
             return v
-        if low is not None and (v < low if inclusive else v <= low):
-            raise self.err(key, f"must be{_bound(low, inclusive)}, got {v!r}")
+        if (low is not None and (v < low if inclusive else v <= low)) or \
+                (high is not None and (v > high if inclusive else v >= high)):
+            raise self.err(key, f"must be{bound}, got {v!r}")
         return v
+
+    def setting(self, key, s: Setting):
+        """The value of a declared setting (its type and bounds), or its default when absent."""
+        if key not in self.table:
+            return s.default
+        if s.kind is tuple:
+            values = self.numbers(key, ())
+            if len(values) != s.length:
+                raise self.err(key, f"must be a list of {s.length} finite numbers, {self._got(self.table[key])}")
+            return list(values)
+        if s.kind not in (bool, int, float, str):
+            raise self.err(key, "cannot be set in a spec")
+        return self.get(key, s.default, s.kind, low=s.low, high=s.high, inclusive=s.inclusive, choices=s.choices,
+                        finite=s.finite)
 
     def strings(self, key, default) -> tuple[str, ...]:
         if key not in self.table:
@@ -435,15 +486,22 @@ class _Reader:
         return tuple(float(x) for x in v)
 
 
-def _bound(low, inclusive) -> str:
-    if low is None:
-        return ""
-    return f" {'>=' if inclusive else '>'} {low:g}"
+def _bound(low, high=None, inclusive=True) -> str:
+    parts = []
+    if low is not None:
+        parts.append(f"{'>=' if inclusive else '>'} {low:g}")
+    if high is not None:
+        parts.append(f"{'<=' if inclusive else '<'} {high:g}")
+    return (" " + " and ".join(parts)) if parts else ""
 
 
-def _check_keys(source: str, table: dict, allowed, prefix: str) -> None:
+def _check_keys(source: str, table: dict, allowed, prefix: str, moved: dict | None = None) -> None:
+    """InputError for a key not in ``allowed``: a key of ``moved`` (old name -> where it is now) says
+    where it went, another the closest allowed name or the list."""
     for key in table:
         if key not in allowed:
+            if moved and key in moved:
+                raise InputError(f"spec {source}: unknown field '{prefix}{key}' (it is now {moved[key]})")
             close = difflib.get_close_matches(key, list(allowed), n=1, cutoff=0.6)
             hint = f" (did you mean '{prefix}{close[0]}'?)" if close else f"; allowed: {', '.join(allowed)}"
             raise InputError(f"spec {source}: unknown field '{prefix}{key}'{hint}")
@@ -453,8 +511,47 @@ def _table(source: str, doc: dict, name: str) -> dict:
     t = doc.get(name, {})
     if not isinstance(t, dict):
         raise InputError(f"spec {source}: field '{name}' must be a table ([{name}]), got {type(t).__name__}")
-    _check_keys(source, t, _SECTIONS[name], f"{name}.")
+    allowed, moved = _SECTIONS[name], None
+    if name == "solver":
+        allowed = allowed + tuple(solver_settings())
+        # A sub-table's field under its one-level name (solver.contact_stiffness) says where it is now.
+        moved = {_flat_key(k, f): f"'solver.{k}.{f}': {f} in a [solver.{k}] table"
+                 for k, s in solver_settings().items() if s.nested for f in settings_of(s.nested)}
+    _check_keys(source, t, allowed, f"{name}.", moved)
     return t
+
+
+def _read_solver(spec: DatasetSpec, sv: _Reader) -> dict:
+    """The [solver] fields that set SolverConfig ones, sub-tables as dicts; friction / self_contact
+    given as true/false (or as a table: on) set the DatasetSpec field of that name."""
+    settings = solver_settings()
+    solver = {}
+    for key, s in settings.items():
+        if key not in sv.table:
+            continue
+        if s.nested is None:
+            solver[key] = sv.setting(key, s)
+            continue
+        value = sv.table[key]
+        if s.optional and isinstance(value, bool):
+            setattr(spec, key, value)
+            continue
+        if not isinstance(value, dict):
+            either = " or true / false" if s.optional else ""
+            raise sv.err(key, f"must be a table ([solver.{key}]){either}, {sv._got(value)}")
+        fields_ = settings_of(s.nested)
+        _check_keys(sv.source, value, tuple(fields_), f"solver.{key}.")
+        sub = _Reader(sv.source, value, f"solver.{key}.")
+        table = {k: sub.setting(k, fields_[k]) for k in fields_ if k in value}
+        if s.optional:
+            setattr(spec, key, True)
+        if table:
+            try:
+                s.nested(**table)   # the class's own checks across fields (e.g. pinch_distance > margin)
+            except InputError as exc:
+                raise InputError(f"spec {sv.source}: table 'solver.{key}': {exc}") from None
+            solver[key] = table
+    return solver
 
 
 def parse_spec(doc: dict, *, source: str = "<dict>", base_dir: str | Path = ".", default_name: str = "dataset"
@@ -539,22 +636,18 @@ def parse_spec(doc: dict, *, source: str = "<dict>", base_dir: str | Path = ".",
     spec.start_frame = m.get("start_frame", 0, int, low=0)
     spec.max_frames = m.get("max_frames", 0, int, low=0)
 
+    simulation = simulation_settings()
     sv = _Reader(source, _table(source, doc, "solver"), "solver.")
     spec.device = sv.get("device", "auto", str)
     spec.fps = sv.get("fps", 30.0, float, low=0.0, inclusive=False)
-    spec.substeps = sv.get("substeps", 10, int, low=1)
-    spec.friction = sv.get("friction", True, bool)
-    spec.self_contact = sv.get("self_contact", False, bool)
-    solver = {}
-    for key, (kind, low, inclusive) in SOLVER_FIELDS.items():
-        if key in sv.table:
-            solver[key] = sv.get(key, None, kind, low=low, inclusive=inclusive)
-    spec.solver = solver
+    spec.substeps = sv.setting("substeps", simulation["substeps"])
+    for key in _switches():   # on unless SolverConfig's default is None
+        setattr(spec, key, solver_settings()[key].default is not None)
+    spec.solver = _read_solver(spec, sv)
 
     p = _Reader(source, _table(source, doc, "protocol"), "protocol.")
-    spec.relax_frames = p.get("relax_frames", 15, int, low=0)
-    spec.ramp_frames = p.get("ramp_frames", 30, int, low=1)
-    spec.rest_frames = p.get("rest_frames", 15, int, low=0)
+    for key in _SIMULATION_FIELDS["protocol"]:
+        setattr(spec, key, p.setting(key, simulation[key]))
     spec.store_rest_frames = p.get("store_rest_frames", True, bool)
 
     sm = _Reader(source, _table(source, doc, "smoothing"), "smoothing.")
@@ -581,6 +674,10 @@ def parse_spec(doc: dict, *, source: str = "<dict>", base_dir: str | Path = ".",
     spec.output = o.get("path", None, str)
 
     _validate_scalars(spec, f"spec {source}")
+    try:
+        spec.solver_options()   # the checks across fields and classes
+    except InputError as exc:
+        raise InputError(f"spec {source}: table 'solver': {exc}") from None
     return spec
 
 
@@ -591,10 +688,11 @@ def _validate_scalars(spec: DatasetSpec, where: str) -> None:
     dev = spec.device
     if not (dev in ("auto", "cpu", "cuda") or re.fullmatch(r"cuda:\d+", dev or "")):
         raise InputError(f"{where}: field 'solver.device' must be auto, cpu, cuda or cuda:N, got {dev!r}")
-    for name, low in (("batch_size", 1), ("substeps", 1), ("max_frames", 0)):
+    for name, low in (("batch_size", 1), ("max_frames", 0)):
         v = getattr(spec, name)
         if isinstance(v, bool) or not isinstance(v, int) or v < low:
             raise InputError(f"{where}: field '{name}' must be an integer >= {low}, got {v!r}")
+    simulation_settings()["substeps"].check(spec.substeps, f"{where}: field 'solver.substeps'")
     for name in ("overlap_writes", "retry_strain_outliers"):
         if not isinstance(getattr(spec, name), bool):
             raise InputError(f"{where}: field 'execution.{name}' must be true or false, "

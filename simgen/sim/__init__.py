@@ -9,19 +9,34 @@
     results = simulate_batch("tshirt", body_model, [SimulationJob("walk", betas), ...])  # N in one system
 """
 
-from simgen.materials import MATERIALS, Material, get_material
-from simgen.sim.model import ClothModel, ClothModelBuilder, ClothState
-from simgen.sim.energies import ContactParams, FrictionParams, GravityParams
-from simgen.sim.collider import BodyCollider
-from simgen.sim.linear import BlockJacobiPCG
-from simgen.sim.config import SimulationConfig, SolverConfig
-from simgen.sim.solver import ImplicitSolver, SolverDivergedError
-from simgen.sim.driver import (FRAME_STAT_KEYS, SimulationFailure, SimulationJob, SimulationResult,
-                               simulate, simulate_batch)
+import importlib
 
-__all__ = [
-    "Material", "MATERIALS", "get_material", "ClothModel", "ClothModelBuilder", "ClothState",
-    "ContactParams", "FrictionParams", "GravityParams", "BodyCollider", "BlockJacobiPCG", "ImplicitSolver",
-    "SolverConfig", "SolverDivergedError", "SimulationConfig", "SimulationResult", "SimulationJob",
-    "SimulationFailure", "simulate", "simulate_batch", "FRAME_STAT_KEYS",
-]
+# Public names -> the module that defines them, imported on first use (PEP 562), so that
+# ``import simgen.sim.config`` (the settings, read by dataset specs and the CLI) does not load Warp.
+_EXPORTS = {
+    "simgen.materials": ("Material", "MATERIALS", "get_material"),
+    "simgen.params": ("ContactParams", "FrictionParams", "GravityParams", "SelfContactParams"),
+    "simgen.sim.model": ("ClothModel", "ClothModelBuilder", "ClothState"),
+    "simgen.sim.collider": ("BodyCollider",),
+    "simgen.sim.linear": ("BlockJacobiPCG",),
+    "simgen.sim.config": ("SimulationConfig", "SolverConfig"),
+    "simgen.sim.solver": ("ImplicitSolver", "SolverDivergedError"),
+    "simgen.sim.driver": ("FRAME_STAT_KEYS", "SimulationFailure", "SimulationJob", "SimulationResult", "simulate",
+                          "simulate_batch"),
+}
+_LAZY = {name: module for module, names in _EXPORTS.items() for name in names}
+
+__all__ = list(_LAZY)
+
+
+def __getattr__(name: str):
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module 'simgen.sim' has no attribute {name!r}")
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value  # later lookups skip __getattr__
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_LAZY))

@@ -183,13 +183,12 @@ def setup_batch(garment, body, jobs, config: SimulationConfig | None = None) -> 
     x0 = (np.asarray(garment.vertices, dtype=np.float64)[None] + schedule.trans0[:, None]).astype(np.float32)
     state.positions.assign(x0.reshape(-1, 3))
     state.velocities.zero_()
-    stats = FrameStats(model, collider, wbody, garment, body, query_distance=cfg.query_distance,
-                       self_intersection_probe=cfg.self_intersection_probe,
-                       pinch_distance=cfg.solver.contact.pinch_distance)
+    stats = FrameStats(model, collider, wbody, garment, body, contact=cfg.solver.contact)
     initial = stats.measure(state.positions, np.zeros((N, nb)))
     if any(r["inside_count"] for r in initial):
         # The garment must never start inside the body: project what a bad template left inside.
-        collider.project(model, state, offset=cfg.solver.projection_offset, query_distance=cfg.query_distance,
+        collider.project(model, state, offset=cfg.solver.projection_offset,
+                         query_distance=cfg.solver.contact.query_distance,
                          pinch_distance=cfg.solver.contact.pinch_distance)
     return BatchSetup(config=cfg, garment=garment, body=body, clips=clips,
                       keys=[str(j.key) if j.key is not None else str(i) for i, j in enumerate(jobs)],

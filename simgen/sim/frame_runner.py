@@ -148,7 +148,7 @@ class FrameRunner:
             s.wbody.pose_from_quats(quats, trans)
             s.collider.update(dt=s.dt)
             s.solver.step(s.state, s.state, s.collider, s.dt, deferred_guard=True,
-                          substeps=s.config.solver.substeps * 2 ** level)
+                          substeps=2 ** level)
 
     def _attempt(self, reshape: bool, level: int, eager: bool) -> np.ndarray:
         """Run the frame's substeps once; the guard's failure bits per instance, (N,) int."""

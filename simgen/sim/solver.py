@@ -353,7 +353,7 @@ class ImplicitSolver:
         cfg = self.config
         work = self._work
         work.assign(state_in)
-        n = cfg.substeps if substeps is None else int(substeps)
+        n = 1 if substeps is None else int(substeps)
         if n < 1:
             raise InputError(f"substeps must be an integer >= 1, got {substeps!r}")
         for s in range(n):
@@ -452,7 +452,7 @@ class ImplicitSolver:
             eval_self_contact(m, x, self.self_contact, energy=energy, gradient=gradient, hessian=hessian)
         if cfg.floor is not None:
             eval_floor(m, x, cfg.floor, cfg.contact, energy=energy, gradient=gradient, hessian=hessian)
-        if cfg.damping and self.has_damping:
+        if self.has_damping:
             eval_damping(m, x, self.x_start, h, energy=energy, gradient=gradient, hessian=hessian)
 
     def _advance(self, state: ClothState, body, h: float, *, deferred: bool = False, lag: bool = True):

@@ -27,47 +27,19 @@ Vertex-triangle only: edge-edge crossings of two coarse triangles are not resolv
 """
 
 import functools
-from dataclasses import dataclass
 from types import SimpleNamespace
 
 import numpy as np
 import warp as wp
 
-from simgen.errors import InputError
-from simgen.params import check_penalty_params
+from simgen.params import SelfContactParams  # declared with the other terms' parameters, Warp-free
 from simgen.sim.warp_toolkit import module_name, resolve_outputs, scalar_types
-from simgen.sim.energies.contact import contact_funcs
+from simgen.body.surface_query import contact_funcs
 
 __all__ = ["SelfContactParams", "SelfContactSet", "eval_self_contact", "self_contact_kernels", "INSTANCE_SPACING"]
 
 # [m] shift between instances in the broad-phase BVH; far beyond any garment's size.
 INSTANCE_SPACING = 100.0
-
-
-@dataclass(frozen=True)
-class SelfContactParams:
-    """Cloth-cloth repulsion k * max(thickness - d, 0)^power between a vertex and a triangle.
-
-    thickness [m]: distance below which the repulsion acts (two layers of cloth stay about this far
-      apart; default 2 mm, the body contact margin).
-    stiffness [J/m^power], power [-] (>= 2): as the body contact penalty (:class:`ContactParams`).
-    search_radius [m]: candidate triangles are gathered within this distance at each substep's start;
-      it must exceed the thickness by a substep's travel (default 1 cm: 2.4 m/s at 1/300 s).
-    max_candidates: triangles kept per vertex (the first found within the radius).
-    """
-
-    thickness: float = 2.0e-3
-    stiffness: float = 1.0e4
-    power: float = 3.0
-    search_radius: float = 1.0e-2
-    max_candidates: int = 16
-
-    def __post_init__(self) -> None:
-        check_penalty_params(self, "self-contact", ("thickness", "stiffness", "power", "search_radius"),
-                             above=("search_radius", "thickness"))
-        k = self.max_candidates
-        if isinstance(k, bool) or not isinstance(k, int) or k < 1:
-            raise InputError(f"self-contact max_candidates must be an integer >= 1, got {k!r}")
 
 
 @functools.cache
