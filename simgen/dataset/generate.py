@@ -1,6 +1,6 @@
 """generate_dataset(): plan the jobs of a spec, run them in batches (locally or on Ray), keep the store consistent.
 
-One store per garment (DESIGN.md). For each store the driver:
+One store per garment (docs/architecture.md, "Dataset store"). For each store the driver:
 
 1. opens or creates it (:class:`simgen.dataset.store.DatasetStore`; a store made with a different
    content key is refused), takes its lock and reconciles it with the manifest (resume after kill -9);

@@ -1,6 +1,6 @@
 """The writer's view of a dataset store: root attrs, manifest, lock, resume reconciliation.
 
-Layout (Zarr v3, DESIGN.md "Dataset store")::
+Layout (Zarr v3, docs/architecture.md "Dataset store")::
 
     DATASET/zarr.json            root attrs: format_version, simgen_version, spec, content_key/hash,
                                  body {id, hash, source}, garment {name, hash, ...}, material, solver

@@ -9,7 +9,7 @@ saved under the template's own name; any ``target_triangles`` gives a variant na
 ``NAME_<N/1000>k`` when N is a multiple of 1000 (``tshirt_1k``, ``dress_2k``) and ``NAME_<N>``
 otherwise (``tshirt_2500``). :func:`variant_name` applies it.
 
-Where garments go (DESIGN.md, "Assets and where they are found"): for the bundled body "open" in
+Where garments go (docs/architecture.md, "Assets"): for the bundled body "open" in
 a source checkout, the repository's ``garments/``; otherwise (another body, or simgen installed as a
 wheel, whose package folder is never written) ``$SIMGEN_HOME/<body-id>/garments/``.
 """

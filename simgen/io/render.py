@@ -1,6 +1,7 @@
 """Offscreen rendering of bodies and garments: one frame to PNG, a sequence to H.264 MP4.
 
-Scenes follow DESIGN.md: metres, Y up, a checker floor at y = 0. The camera is fixed for a whole
+Scenes follow docs/architecture.md ("Units and axes"): metres, Y up, a checker floor at y = 0.
+The camera is fixed for a whole
 sequence (:func:`default_camera` frames the union of every frame's bounds), so motion reads as
 motion of the body, not of the camera. Bodies are drawn in a neutral skin tone, garments in
 distinct colours (:data:`simgen.io.usd.ROLE_COLORS`, :data:`GARMENT_PALETTE`), smooth-shaded under

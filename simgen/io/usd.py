@@ -16,7 +16,7 @@ One stage per sequence. Layout of a written file::
 
 Frame ``i`` of a track is stored at time code ``start_frame + i``. A static track (points of shape
 (V, 3)) is written as default values without time samples. Units are metres, Y is up, the floor is
-y = 0 (see DESIGN.md).
+y = 0 (see docs/architecture.md, "Units and axes").
 
 pxr (usd-core) is imported inside the functions: the GPU machine has no usd-core, and
 :class:`MeshTrack` is also the currency of :mod:`simgen.io.render`.

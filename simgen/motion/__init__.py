@@ -1,7 +1,7 @@
 """Body motions: MotionClip, loaders (AMASS, BVH, simgen .npz), operations and the motion library.
 
 Clips use SMPL's 24 joints (axis-angle, shape (T, 24, 3)) and root translation (T, 3) [m], Y-up,
-on the floor y = 0 (DESIGN.md, "Motions").
+on the floor y = 0 (docs/architecture.md, "Motions").
 """
 
 from simgen.motion.amass import load_amass

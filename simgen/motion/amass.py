@@ -3,7 +3,7 @@
 AMASS stores each sequence as an .npz with the axis-angle pose of every joint in the body model's
 own (Y-up) frame and a world frame that is Z-up. The loader keeps SMPL's 22 body joints, sets SMPL's
 two hand joints from the first finger joint of each hand (see below), rotates the motion into
-simgen's Y-up world with DESIGN.md's root-translation rule and puts it on the floor.
+simgen's Y-up world with the root-translation rule (docs/architecture.md, "Motions") and puts it on the floor.
 
 Hand joints: SMPL's left_hand / right_hand (22, 23) are single joints at the knuckles that bend all
 fingers together. AMASS carries 15 joints per hand; the loader takes the first one of each hand

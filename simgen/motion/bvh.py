@@ -515,7 +515,7 @@ class _JointPlan:
 
 def _leaf_direction(j: int, smpl_rest: np.ndarray) -> np.ndarray:
     """Rest direction of an SMPL leaf joint's segment, which its joints do not give: SMPL-format bodies
-    rest in a T-pose (DESIGN.md), so the head points up (+Y), the toes forward (+Z) and the hand
+    rest in a T-pose (docs/architecture.md, "Bodies"), so the head points up (+Y), the toes forward (+Z) and the hand
     continues the wrist-hand line."""
     if j == _J["head"]:
         return np.array([0.0, 1.0, 0.0])

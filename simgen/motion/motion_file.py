@@ -2,7 +2,7 @@
 
 simgen writes AMASS-style .npz archives (so AMASS tooling can read them) that are marked as Y-up:
   poses (T, 72) float32: SMPL axis-angle [rad], 24 joints x 3;
-  trans (T, 3) float64: root translation [m] (SMPL's meaning, DESIGN.md);
+  trans (T, 3) float64: root translation [m] (SMPL's meaning, docs/architecture.md, "Motions");
   mocap_frame_rate () float64 [1/s]; gender 'neutral'; betas zeros(10);
   up_axis 'Y' (AMASS files are Z-up and have no such field);
   simgen_meta: JSON {"format": 1, "name": ..., "meta": {...}}.

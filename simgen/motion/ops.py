@@ -182,7 +182,7 @@ def blend_from_rest(clip: MotionClip, num_frames: int, *, rest_pose=None) -> Mot
 
 # ---------------------------------------------------------------------------------------- placement
 def apply_world_rotation(clip: MotionClip, R, rest_pelvis) -> MotionClip:
-    """Rotate the whole motion by the world rotation R (DESIGN.md's rule).
+    """Rotate the whole motion by the world rotation R (the root-translation rule, docs/architecture.md, "Motions").
 
     R: rotation matrix, shape (3, 3); rest_pelvis: the body's rest pelvis joint J0 [m], shape (3,).
     global_orient -> R * global_orient, trans -> R (trans + J0) - J0, so every posed vertex v becomes
