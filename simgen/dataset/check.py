@@ -44,6 +44,17 @@ __all__ = ["CheckReport", "check_dataset", "DEFAULT_MAX_DEPTH", "DEFAULT_MAX_STR
 DEFAULT_MAX_DEPTH = 1.0e-3     # [m] the solver's contract: no vertex more than 1 mm inside (self-intersections apart)
 _POSE_CHUNK = 16
 _STRAIN_CHUNK = 32
+#: The per-frame arrays every sequence node holds.
+_SEQUENCE_ARRAYS = ("garment_vertices", "poses", "trans", "betas")
+
+
+def _posed_chunks(bm, frames, poses, trans, betas):
+    """Yield (sel, out) over ``frames`` in chunks of _POSE_CHUNK: the chunk's frame numbers and
+    ``bm.forward`` of their betas, poses and trans (``out.vertices`` [m] (len(sel), Vb, 3)). Chunked
+    because the forward pass holds (N, Vb, 4, 4) transforms."""
+    for start in range(0, len(frames), _POSE_CHUNK):
+        sel = frames[start:start + _POSE_CHUNK]
+        yield sel, bm.forward(betas[sel], poses[sel], trans[sel])
 
 
 def _split_pinched_strain(over: dict, x, poses, trans, betas, bm, faces, **penetration_kwargs) -> tuple[dict, dict]:
@@ -53,12 +64,9 @@ def _split_pinched_strain(over: dict, x, poses, trans, betas, bm, faces, **penet
     from simgen.dataset.quality import body_penetration
 
     free, pinched = {}, {}
-    frames = sorted(over)
-    for i in range(0, len(frames), _POSE_CHUNK):
-        sel = frames[i:i + _POSE_CHUNK]
-        posed = bm.forward(betas[sel], poses[sel], trans[sel]).vertices
+    for sel, out in _posed_chunks(bm, sorted(over), poses, trans, betas):
         for j, k in enumerate(sel):
-            _, self_hit, _ = body_penetration(x[k], posed[j], bm.faces, **penetration_kwargs)
+            _, self_hit, _ = body_penetration(x[k], out.vertices[j], bm.faces, **penetration_kwargs)
             away = {f: v for f, v in over[k].items() if not np.any(self_hit[faces[f]])}
             if away:
                 free[k] = away
@@ -78,9 +86,7 @@ def _check_body(x, frames, poses, trans, betas, bm, reference, tpl, max_depth: f
     from simgen.sim.placement import PLACEMENT_KEYS, placement_row
 
     worst, rows = (0.0, -1, 0), []
-    for start in range(0, len(frames), _POSE_CHUNK):  # the forward pass holds (N, Vb, 4, 4) transforms
-        sel = frames[start:start + _POSE_CHUNK]
-        out = bm.forward(betas[sel], poses[sel], trans[sel])
+    for sel, out in _posed_chunks(bm, frames, poses, trans, betas):
         posed = out.vertices
         skinned = None
         if reference is not None:
@@ -156,61 +162,55 @@ class CheckReport:
         return "\n".join(lines)
 
 
-def check_dataset(path, *, body=None, stride: int = 1, max_depth: float = DEFAULT_MAX_DEPTH,
-                  max_strain: float = DEFAULT_MAX_STRAIN, require_complete: bool = False, progress=None,
-                  device: str = "auto") -> CheckReport:
-    """Check a store (see the module doc). Returns a :class:`CheckReport`.
+@dataclass
+class _Context:
+    """What the checks of the fits and sequences share; the template's parts are None without a
+    verified template.
 
-    stride: check the body penetration on every stride-th frame (NaN, strain, missing frames and
-    checksums always cover every frame: they need no body); body: BodyModel or source to re-pose
-    with (default: the store's, verified by hash); progress(done, total) per sequence; device: Warp device of the
-    surface queries ("auto": CUDA when present, else the CPU).
+    tpl: the template node's arrays; faces (F, 3) of the cloth; rest_inv (F, 2, 2) inverse rest
+    shapes of its triangles (:func:`triangle_rest_inverse`); num_vertices: V of the cloth;
+    reference: the garment's :class:`simgen.sim.placement.GarmentReference` on the body; floor [m]
+    or None (stores made before the floor have none); penetration: keyword arguments of
+    :func:`body_penetration` (device, home_parts (V,), part_masks (Fb,), pinch_distance [m]).
     """
-    import zarr
 
-    from simgen._warp_log import quiet_warp
-    from simgen.dataset.groundtruth import SmoothingParams, smooth_garment
-    from simgen.dataset.quality import triangle_rest_inverse, triangle_strain
-    from simgen.dataset.reader import open_dataset
-    from simgen.errors import InputError
-    from simgen.sim.placement import garment_reference, placement_problems
+    tpl: dict | None
+    faces: np.ndarray | None
+    rest_inv: np.ndarray | None
+    num_vertices: int | None
+    reference: object | None
+    floor: float | None
+    penetration: dict
 
-    if isinstance(stride, bool) or not isinstance(stride, int) or stride < 1:
-        raise InputError(f"--stride must be an integer >= 1, got {stride!r}")
-    quiet_warp()
-    if device == "auto":
-        import warp as wp
 
-        device = "cuda:0" if wp.get_cuda_device_count() > 0 else "cpu"
-    ds = open_dataset(path)
-    rep = CheckReport(path=ds.path)
-    loc, m = ds.loc, ds.manifest
-    bm = ds.load_body(body)
-    root = zarr.open_group(loc.url(), mode="r")
+def _verify_node(rep: CheckReport, loc, rel: str, entry: dict | None, node: str) -> bool:
+    """Whether node ``rel`` of the store is committed, its commit agrees with the manifest ``entry``
+    (None: not checked) and its arrays match the committed checksum; a problem of ``node`` if not."""
+    commit = loc.committed(rel)
+    if commit is None:
+        rep.problem(node, "manifest", f"listed in the manifest but {rel} is missing or was never committed")
+        return False
+    if entry is not None and entry.get("checksum") != commit["checksum"]:
+        rep.problem(node, "manifest", "the manifest's checksum differs from the node's commit record")
+        return False
+    try:
+        actual = arrays_checksum(node_arrays(loc, rel))
+    except Exception as exc:  # noqa: BLE001 - unreadable data is a finding, not a crash
+        rep.problem(node, "manifest", f"its arrays cannot be read ({type(exc).__name__}: {exc})")
+        return False
+    if actual != commit["checksum"]:
+        rep.problem(node, "checksum", "its arrays do not match the checksum committed with them "
+                                      "(changed or damaged after writing)")
+        return False
+    return True
 
-    # ---- manifest vs store
-    def verify(rel: str, entry: dict | None, node: str) -> bool:
-        commit = loc.committed(rel)
-        if commit is None:
-            rep.problem(node, "manifest", f"listed in the manifest but {rel} is missing or was never committed")
-            return False
-        if entry is not None and entry.get("checksum") != commit["checksum"]:
-            rep.problem(node, "manifest", "the manifest's checksum differs from the node's commit record")
-            return False
-        try:
-            actual = arrays_checksum(node_arrays(loc, rel))
-        except Exception as exc:  # noqa: BLE001 - unreadable data is a finding, not a crash
-            rep.problem(node, "manifest", f"its arrays cannot be read ({type(exc).__name__}: {exc})")
-            return False
-        if actual != commit["checksum"]:
-            rep.problem(node, "checksum", "its arrays do not match the checksum committed with them "
-                                          "(changed or damaged after writing)")
-            return False
-        return True
 
+def _check_manifest(rep: CheckReport, loc, m: dict) -> bool:
+    """Manifest against store: the template, nodes committed but not listed, leftovers of an
+    interrupted run, failed jobs. Returns whether the template node is sound."""
     template_ok = False
     if m["template"] is not None:
-        template_ok = verify("template", m["template"], "template")
+        template_ok = _verify_node(rep, loc, "template", m["template"], "template")
     elif m["fits"] or m["sequences"]:
         rep.problem("template", "manifest", "fits or sequences exist but the template relaxation does not")
     for kind, folder in (("fits", "fit"), ("sequences", "sequences")):
@@ -229,6 +229,15 @@ def check_dataset(path, *, body=None, stride: int = 1, max_depth: float = DEFAUL
                                          f"(the next generate removes them)")
     for key, info in sorted(m.get("failed", {}).items()):
         rep.problem(key, "failed", f"the job failed after {info.get('attempts')} attempts: {info.get('message')}")
+    return template_ok
+
+
+def _context(ds, bm, template_ok: bool, device: str) -> _Context:
+    """The :class:`_Context` of store ``ds`` on body ``bm``; the template's parts only when template_ok."""
+    from simgen.body.parts import face_part_masks, face_parts, vertex_parts
+    from simgen.dataset.quality import triangle_rest_inverse
+    from simgen.params import ContactParams
+    from simgen.sim.placement import garment_reference
 
     tpl = ds.template if template_ok else None
     faces = tpl["faces"].astype(np.int64) if tpl is not None else None
@@ -236,9 +245,6 @@ def check_dataset(path, *, body=None, stride: int = 1, max_depth: float = DEFAUL
     V = len(tpl["vertices"]) if tpl is not None else None
     # The solver's contact keeps cloth on its own body part where the body intersects itself: the
     # same part labels classify such cloth as at a self-intersection here.
-    from simgen.body.parts import face_part_masks, face_parts, vertex_parts
-    from simgen.params import ContactParams
-
     home_parts = vertex_parts(tpl["skin_weights"]) if tpl is not None else None
     reference = None
     if tpl is not None:
@@ -252,117 +258,131 @@ def check_dataset(path, *, body=None, stride: int = 1, max_depth: float = DEFAUL
     part_masks = face_part_masks(bm.v_template, bm.faces, face_parts(bm.weights, bm.faces))
     contact = solver_config.get("contact") or {}
     pinch_distance = float(contact.get("pinch_distance", ContactParams.pinch_distance))
+    penetration = dict(device=device, home_parts=home_parts, part_masks=part_masks, pinch_distance=pinch_distance)
+    return _Context(tpl, faces, rest_inv, V, reference, floor, penetration)
 
-    # ---- fits
-    if tpl is not None:
-        params = SmoothingParams.from_dict(tpl["smoothing"])
-        for sid in sorted(m["fits"]):
-            node = f"fit/{sid}"
-            if not verify(node, m["fits"][sid], node):
-                continue
-            fit = ds.fit(sid)
-            if not all(np.all(np.isfinite(fit[k])) for k in ("betas", "vertices", "fit_displacement")):
-                rep.problem(node, "nan", "contains NaN or inf")
-                continue
-            expect = smooth_garment(fit["vertices"].astype(np.float64), faces, params) - tpl["smoothed"]
-            err = float(np.max(np.abs(expect - fit["fit_displacement"])))
-            if err > 1e-5:
-                rep.problem(node, "fit", f"fit_displacement differs from smooth(S_c) - T_c by {1e3 * err:.3f} mm")
 
-    # ---- sequences
-    ids = sorted(m["sequences"])
-    pinched_seqs = []  # (sequence, frames, largest strain) with outliers only at body self-intersections
-    for n, sid in enumerate(ids):
-        node = f"sequences/{sid}"
-        if progress is not None:
-            progress(n, len(ids))
-        if not verify(node, m["sequences"][sid], node):
-            continue
-        g = root[node]
-        entry = m["sequences"][sid]
-        attrs = g.attrs.asdict()
-        rep.sequences += 1
-        arrays = {k: g[k] for k in ("garment_vertices", "poses", "trans", "betas") if k in g}
-        if len(arrays) < 4:
-            lacking = sorted({"garment_vertices", "poses", "trans", "betas"} - set(arrays))
-            rep.problem(node, "frames", f"lacks arrays {lacking}")
-            continue
-        lengths = {k: a.shape[0] for k, a in arrays.items()}
-        expected = attrs.get("frames", entry.get("frames"))
-        if len(set(lengths.values())) != 1 or expected not in lengths.values():
-            rep.problem(node, "frames", f"frame counts disagree: {lengths}, attrs/manifest say {expected}")
-            continue
-        missing = [k for k, a in arrays.items() if a.nchunks_initialized < a.nchunks]
-        if missing:
-            rep.problem(node, "frames", f"unwritten chunks (missing frames) in {', '.join(missing)}")
-            continue
-        x = arrays["garment_vertices"][...]
-        T = x.shape[0]
-        rep.frames += T
-        if V is not None and x.shape[1:] != (V, 3):
-            rep.problem(node, "frames", f"garment_vertices has shape {x.shape}, the template has {V} vertices")
-            continue
-        bad = [k for k, a in arrays.items() if not np.all(np.isfinite(a[...]))]
-        if "rest_garment_vertices" in g and not np.all(np.isfinite(g["rest_garment_vertices"][...])):
-            bad.append("rest_garment_vertices")
-        if bad:
-            first = int(np.nonzero(~np.all(np.isfinite(x.reshape(T, -1)), axis=1))[0][0]) if "garment_vertices" in bad \
-                else None
-            rep.problem(node, "nan", f"NaN or inf in {', '.join(bad)}" + (f" (first at frame {first})"
-                                                                           if first is not None else ""))
-            continue
-        frames = np.arange(0, T, stride)
-        poses, trans, betas = (arrays[k][...] for k in ("poses", "trans", "betas"))
-        worst, placement = _check_body(x, frames, poses, trans, betas, bm, reference, tpl, max_depth, device=device,
-                                       home_parts=home_parts, part_masks=part_masks, pinch_distance=pinch_distance)
-        rep.frames_checked_body += len(frames)
-        rep.max_depth = max(rep.max_depth, worst[0])
-        if worst[0] > max_depth:
-            rep.problem(node, "inside-body", f"{worst[2]} cloth vertices more than {1e3 * max_depth:g} mm inside the "
-                                             f"body at frame {worst[1]} (deepest {1e3 * worst[0]:.2f} mm; "
-                                             f"self-intersections excluded)")
-        if placement is not None:
-            rep.min_body_share = min(rep.min_body_share, float(placement["body_share"].min()))
-            rep.max_support_drop = max(rep.max_support_drop, float(placement["support_drop"].max()))
-            rep.min_height = min(rep.min_height, float(placement["min_height"].min()))
-            for message in placement_problems(placement, floor, frames):
-                rep.problem(node, "off-body", message + (f" (frames checked every {stride})" if stride > 1 else ""))
-        if rest_inv is not None:
-            over = {}  # frame -> {triangle: strain} of the triangles over the limit
-            smax = below = 0.0
-            for start in range(0, T, _STRAIN_CHUNK):  # (chunk, F, 3, 2) float64 deformation gradients
-                s = triangle_strain(x[start:start + _STRAIN_CHUNK], faces, rest_inv)
-                smax = max(smax, float(s.max()))
-                below = max(below, float(s[s <= max_strain].max(initial=0.0)))
-                for t, f in zip(*np.nonzero(s > max_strain)):
-                    over.setdefault(start + int(t), {})[int(f)] = float(s[t, f])
-            rep.max_strain = max(rep.max_strain, smax)
-            free, pinched = _split_pinched_strain(over, x, poses, trans, betas, bm, faces, device=device,
-                                                  home_parts=home_parts, part_masks=part_masks,
-                                                  pinch_distance=pinch_distance)
-            rep.pinched_strain_frames += len(pinched)
-            rep.max_strain_regular = max(rep.max_strain_regular, below,
-                                         *(v for fr in free.values() for v in fr.values()))
-            if free:
-                k, (f, v) = max(((k, max(fr.items(), key=lambda kv: kv[1])) for k, fr in free.items()),
-                                key=lambda e: e[1][1])
-                rep.problem(node, "strain", f"strain outlier: triangle {f} stretched {100 * v:.0f}% at frame {k} "
-                                            f"(limit {100 * max_strain:g}%; {len(free)} of {T} frames over it, "
-                                            f"body self-intersections excluded)")
-            if pinched:
-                pinched_seqs.append((sid, len(pinched), max(max(fr.values()) for fr in pinched.values())))
-    if progress is not None:
-        progress(len(ids), len(ids))
+def _check_fits(rep: CheckReport, ds, ctx: _Context) -> None:
+    """Each fit: verified against the manifest, finite, and its fit_displacement [m] (V, 3) equal to
+    smooth(S_c) - T_c within 1e-5 m."""
+    from simgen.dataset.groundtruth import SmoothingParams, smooth_garment
 
-    if pinched_seqs:
-        frames_total = sum(n for _, n, _ in pinched_seqs)
-        worst = max(pinched_seqs, key=lambda e: e[2])
-        rep.warn("sequences", "strain-pinched",
-                 f"{len(pinched_seqs)} sequences have {frames_total} frames with triangles stretched past "
-                 f"{100 * max_strain:g}% only where the cloth touches a body self-intersection (largest "
-                 f"{100 * worst[2]:.0f}% in {worst[0]}); counted apart like the penetration")
+    m, tpl = ds.manifest, ctx.tpl
+    params = SmoothingParams.from_dict(tpl["smoothing"])
+    for sid in sorted(m["fits"]):
+        node = f"fit/{sid}"
+        if not _verify_node(rep, ds.loc, node, m["fits"][sid], node):
+            continue
+        fit = ds.fit(sid)
+        if not all(np.all(np.isfinite(fit[k])) for k in ("betas", "vertices", "fit_displacement")):
+            rep.problem(node, "nan", "contains NaN or inf")
+            continue
+        expect = smooth_garment(fit["vertices"].astype(np.float64), ctx.faces, params) - tpl["smoothed"]
+        err = float(np.max(np.abs(expect - fit["fit_displacement"])))
+        if err > 1e-5:
+            rep.problem(node, "fit", f"fit_displacement differs from smooth(S_c) - T_c by {1e3 * err:.3f} mm")
 
-    # ---- completeness against the plan recorded in the spec
+
+def _read_sequence(rep: CheckReport, node: str, g, entry: dict, num_vertices: int | None):
+    """A sequence's arrays, checked complete and finite: garment_vertices [m] (T, V, 3), poses,
+    trans [m] (T, 3) and betas, or None (and a problem of ``node``). g: its Zarr group; entry: its
+    manifest entry; num_vertices: the template's V, or None. Counts the sequence and its frames."""
+    attrs = g.attrs.asdict()
+    rep.sequences += 1
+    arrays = {k: g[k] for k in _SEQUENCE_ARRAYS if k in g}
+    if len(arrays) < len(_SEQUENCE_ARRAYS):
+        lacking = sorted(set(_SEQUENCE_ARRAYS) - set(arrays))
+        rep.problem(node, "frames", f"lacks arrays {lacking}")
+        return None
+    lengths = {k: a.shape[0] for k, a in arrays.items()}
+    expected = attrs.get("frames", entry.get("frames"))
+    if len(set(lengths.values())) != 1 or expected not in lengths.values():
+        rep.problem(node, "frames", f"frame counts disagree: {lengths}, attrs/manifest say {expected}")
+        return None
+    missing = [k for k, a in arrays.items() if a.nchunks_initialized < a.nchunks]
+    if missing:
+        rep.problem(node, "frames", f"unwritten chunks (missing frames) in {', '.join(missing)}")
+        return None
+    x = arrays["garment_vertices"][...]
+    T = x.shape[0]
+    rep.frames += T
+    if num_vertices is not None and x.shape[1:] != (num_vertices, 3):
+        rep.problem(node, "frames", f"garment_vertices has shape {x.shape}, the template has {num_vertices} "
+                                    f"vertices")
+        return None
+    bad = [k for k, a in arrays.items() if not np.all(np.isfinite(a[...]))]
+    if "rest_garment_vertices" in g and not np.all(np.isfinite(g["rest_garment_vertices"][...])):
+        bad.append("rest_garment_vertices")
+    if bad:
+        first = int(np.nonzero(~np.all(np.isfinite(x.reshape(T, -1)), axis=1))[0][0]) if "garment_vertices" in bad \
+            else None
+        rep.problem(node, "nan", f"NaN or inf in {', '.join(bad)}" + (f" (first at frame {first})"
+                                                                       if first is not None else ""))
+        return None
+    poses, trans, betas = (arrays[k][...] for k in ("poses", "trans", "betas"))
+    return x, poses, trans, betas
+
+
+def _check_sequence_body(rep: CheckReport, node: str, seq, bm, ctx: _Context, stride: int,
+                         max_depth: float) -> None:
+    """Penetration [m] and placement of one sequence on every stride-th frame of its re-posed body.
+    seq: (garment_vertices (T, V, 3), poses, trans, betas) from :func:`_read_sequence`."""
+    from simgen.sim.placement import placement_problems
+
+    x, poses, trans, betas = seq
+    frames = np.arange(0, x.shape[0], stride)
+    worst, placement = _check_body(x, frames, poses, trans, betas, bm, ctx.reference, ctx.tpl, max_depth,
+                                   **ctx.penetration)
+    rep.frames_checked_body += len(frames)
+    rep.max_depth = max(rep.max_depth, worst[0])
+    if worst[0] > max_depth:
+        rep.problem(node, "inside-body", f"{worst[2]} cloth vertices more than {1e3 * max_depth:g} mm inside the "
+                                         f"body at frame {worst[1]} (deepest {1e3 * worst[0]:.2f} mm; "
+                                         f"self-intersections excluded)")
+    if placement is not None:
+        rep.min_body_share = min(rep.min_body_share, float(placement["body_share"].min()))
+        rep.max_support_drop = max(rep.max_support_drop, float(placement["support_drop"].max()))
+        rep.min_height = min(rep.min_height, float(placement["min_height"].min()))
+        for message in placement_problems(placement, ctx.floor, frames):
+            rep.problem(node, "off-body", message + (f" (frames checked every {stride})" if stride > 1 else ""))
+
+
+def _check_sequence_strain(rep: CheckReport, node: str, seq, bm, ctx: _Context,
+                           max_strain: float) -> tuple[int, float] | None:
+    """Strain outliers of one sequence on every frame (``seq`` as for :func:`_check_sequence_body`):
+    a problem for those away from body self-intersections. Returns (frames, largest strain) of the
+    frames whose outliers are all at self-intersections, or None when there are none."""
+    from simgen.dataset.quality import triangle_strain
+
+    x, poses, trans, betas = seq
+    T = x.shape[0]
+    over = {}  # frame -> {triangle: strain} of the triangles over the limit
+    smax = below = 0.0
+    for start in range(0, T, _STRAIN_CHUNK):  # (chunk, F, 3, 2) float64 deformation gradients
+        s = triangle_strain(x[start:start + _STRAIN_CHUNK], ctx.faces, ctx.rest_inv)
+        smax = max(smax, float(s.max()))
+        below = max(below, float(s[s <= max_strain].max(initial=0.0)))
+        for t, f in zip(*np.nonzero(s > max_strain)):
+            over.setdefault(start + int(t), {})[int(f)] = float(s[t, f])
+    rep.max_strain = max(rep.max_strain, smax)
+    free, pinched = _split_pinched_strain(over, x, poses, trans, betas, bm, ctx.faces, **ctx.penetration)
+    rep.pinched_strain_frames += len(pinched)
+    rep.max_strain_regular = max(rep.max_strain_regular, below, *(v for fr in free.values() for v in fr.values()))
+    if free:
+        k, (f, v) = max(((k, max(fr.items(), key=lambda kv: kv[1])) for k, fr in free.items()),
+                        key=lambda e: e[1][1])
+        rep.problem(node, "strain", f"strain outlier: triangle {f} stretched {100 * v:.0f}% at frame {k} "
+                                    f"(limit {100 * max_strain:g}%; {len(free)} of {T} frames over it, "
+                                    f"body self-intersections excluded)")
+    if pinched:
+        return len(pinched), max(max(fr.values()) for fr in pinched.values())
+    return None
+
+
+def _check_completeness(rep: CheckReport, ds, require_complete: bool) -> None:
+    """The generated sequences against the plan of the spec stored with ``ds``: missing ones are a
+    warning (a problem with require_complete), ones outside the plan a warning."""
+    m = ds.manifest
     spec = ds.attrs.get("spec") or {}
     planned = _planned_sequences(spec)
     if planned is not None:
@@ -376,6 +396,69 @@ def check_dataset(path, *, body=None, stride: int = 1, max_depth: float = DEFAUL
         if extra:
             rep.warn("sequences", "complete", f"{len(extra)} sequences are not in the current spec's plan "
                                               f"(e.g. {extra[0]})")
+
+
+def check_dataset(path, *, body=None, stride: int = 1, max_depth: float = DEFAULT_MAX_DEPTH,
+                  max_strain: float = DEFAULT_MAX_STRAIN, require_complete: bool = False, progress=None,
+                  device: str = "auto") -> CheckReport:
+    """Check a store (see the module doc). Returns a :class:`CheckReport`.
+
+    stride: check the body penetration on every stride-th frame (NaN, strain, missing frames and
+    checksums always cover every frame: they need no body); body: BodyModel or source to re-pose
+    with (default: the store's, verified by hash); progress(done, total) per sequence; device: Warp device of the
+    surface queries ("auto": CUDA when present, else the CPU).
+    """
+    import zarr
+
+    from simgen._warp_log import quiet_warp
+    from simgen.dataset.reader import open_dataset
+    from simgen.errors import InputError
+
+    if isinstance(stride, bool) or not isinstance(stride, int) or stride < 1:
+        raise InputError(f"--stride must be an integer >= 1, got {stride!r}")
+    quiet_warp()
+    if device == "auto":
+        import warp as wp
+
+        device = "cuda:0" if wp.get_cuda_device_count() > 0 else "cpu"
+    ds = open_dataset(path)
+    rep = CheckReport(path=ds.path)
+    loc, m = ds.loc, ds.manifest
+    bm = ds.load_body(body)
+    root = zarr.open_group(loc.url(), mode="r")
+
+    template_ok = _check_manifest(rep, loc, m)
+    ctx = _context(ds, bm, template_ok, device)
+    if ctx.tpl is not None:
+        _check_fits(rep, ds, ctx)
+
+    ids = sorted(m["sequences"])
+    pinched_seqs = []  # (sequence, frames, largest strain) with outliers only at body self-intersections
+    for n, sid in enumerate(ids):
+        node = f"sequences/{sid}"
+        if progress is not None:
+            progress(n, len(ids))
+        if not _verify_node(rep, loc, node, m["sequences"][sid], node):
+            continue
+        seq = _read_sequence(rep, node, root[node], m["sequences"][sid], ctx.num_vertices)
+        if seq is None:
+            continue
+        _check_sequence_body(rep, node, seq, bm, ctx, stride, max_depth)
+        if ctx.rest_inv is not None:
+            pinched = _check_sequence_strain(rep, node, seq, bm, ctx, max_strain)
+            if pinched is not None:
+                pinched_seqs.append((sid, *pinched))
+    if progress is not None:
+        progress(len(ids), len(ids))
+
+    if pinched_seqs:
+        frames_total = sum(n for _, n, _ in pinched_seqs)
+        worst = max(pinched_seqs, key=lambda e: e[2])
+        rep.warn("sequences", "strain-pinched",
+                 f"{len(pinched_seqs)} sequences have {frames_total} frames with triangles stretched past "
+                 f"{100 * max_strain:g}% only where the cloth touches a body self-intersection (largest "
+                 f"{100 * worst[2]:.0f}% in {worst[0]}); counted apart like the penetration")
+    _check_completeness(rep, ds, require_complete)
     return rep
 
 

@@ -404,8 +404,13 @@ def _read(path: Path, report: ImportReport) -> str | None:
 
 
 def _check(path, body, scale) -> _Checked:
+    """Validate and repair one OBJ garment for ``body``; nothing is written.
+
+    Every finding goes to the returned report. When nothing refuses the file, the result also
+    holds the repaired mesh: vertices [m] (V, 3), faces (F, 3) facing away from the body, and
+    each vertex's signed distance to the body [m] (V,). Only a bad ``body`` or ``scale`` raises.
+    """
     from simgen.body.model import BodyModel
-    from simgen.garment import mesh as m
 
     if not isinstance(body, BodyModel):
         raise InputError(f"body must be a simgen BodyModel, got {type(body).__name__}")
@@ -419,24 +424,47 @@ def _check(path, body, scale) -> _Checked:
     text = _read(path, report)
     if text is None:
         return out
-
     p = _parse_obj(text)
+    if not _check_statements(p, report):
+        return out
+    v = p.vertices * (1.0 if scale is None else float(scale))
+    if not _check_size_and_placement(v, p.faces, body, scale, report):
+        return out
+    if p.polygons:
+        _check_polygons_convex(v, p.faces, p.face_lines, report)
+    v, f = _merge_and_drop_vertices(v, p.faces, report)
+    collapsed = _check_triangles(v, f, p.face_lines, report)
+    _check_topology(v, f[~collapsed], report)
+    near = _check_body_distance(v, body, report)
+    if report.problems:
+        return out
+    f = _orient_outward(v, f, p.face_lines, body, near, report)
+    if f is None:
+        return out
+    _record_openings(f, report)
+    out.vertices, out.faces, out.distance = v, f, near.distance
+    return out
+
+
+def _check_statements(p: _Parsed, report: ImportReport) -> bool:
+    """Report what the parse found (syntax errors, ignored and unknown statements, polygons, point
+    clouds, too many triangles, NaN/inf vertices); True when the mesh checks can go on."""
     st = report.stats
     st["file_vertices"], st["file_triangles"] = len(p.vertices), len(p.faces)
     if p.statements == 0:
         report.add("problem", "empty", "the file has no statements (only blank lines and comments)")
-        return out
+        return False
+    unknown_examples = [f"line {ln}: {k!r}" for ln, k in p.unknown]
     if len(p.vertices) == 0 and len(p.faces) == 0 and not p.errors:
         report.add("problem", "not_obj", f"none of the file's {p.statements} statement(s) is an OBJ vertex "
-                   f"('v') or face ('f'): it is not a Wavefront OBJ garment",
-                   len(p.unknown), [f"line {ln}: {k!r}" for ln, k in p.unknown])
-        return out
+                   f"('v') or face ('f'): it is not a Wavefront OBJ garment", len(p.unknown), unknown_examples)
+        return False
     if p.errors:
         report.add("problem", "syntax", f"{len(p.errors)} malformed statement(s): {p.errors[0]}", len(p.errors),
                    p.errors)
     if p.unknown:
         report.add("warning", "unknown_statements", f"{len(p.unknown)} line(s) with statements OBJ does not "
-                   f"define were ignored", len(p.unknown), [f"line {ln}: {k!r}" for ln, k in p.unknown])
+                   f"define were ignored", len(p.unknown), unknown_examples)
     if p.ignored:
         counts = ", ".join(f"{n} {k}" for k, n in sorted(p.ignored.items()))
         report.add("note", "ignored", f"ignored statements: {counts}", sum(p.ignored.values()))
@@ -449,23 +477,25 @@ def _check(path, body, scale) -> _Checked:
     if len(p.faces) > MAX_TRIANGLES:
         report.add("problem", "too_many_triangles", f"{len(p.faces)} triangles, more than the {MAX_TRIANGLES} "
                    f"simgen accepts (decimate the garment first); the other checks were skipped", len(p.faces))
-        return out
+        return False
     bad = ~np.all(np.isfinite(p.vertices), axis=1)
     if np.any(bad):
         report.add("problem", "non_finite", f"{int(bad.sum())} vertex(es) have NaN or infinite coordinates",
                    int(bad.sum()), [f"vertex {int(k) + 1}" for k in np.flatnonzero(bad)])
-    if report.problems:
-        return out
+    return not report.problems
 
-    # ---- scale, units and placement (before any tolerance in metres applies)
-    v = p.vertices * (1.0 if scale is None else float(scale))
-    f = p.faces
+
+def _check_size_and_placement(v: np.ndarray, f: np.ndarray, body, scale, report: ImportReport) -> bool:
+    """Size and placement of the garment against the body's rest template, before any tolerance in
+    metres applies: v [m] (V, 3) after ``scale``, f (F, 3). A size more than 2x or under 1% of the
+    body's is refused (naming the likely unit), as is a bounding box that misses the body's by more
+    than 10 cm (naming a Z-up file). Records the bounding box [m]; True when the garment fits."""
     used = np.unique(f)
     lo, hi = v[used].min(axis=0), v[used].max(axis=0)
     body_lo, body_hi = body.v_template.min(axis=0), body.v_template.max(axis=0)
     body_size = float(np.max(body_hi - body_lo))
     size = float(np.max(hi - lo))
-    st["bounding_box_min"], st["bounding_box_max"] = lo, hi
+    report.stats["bounding_box_min"], report.stats["bounding_box_max"] = lo, hi
     ratio = size / body_size
     unit = "" if scale is None else f" (after scale={scale:g})"
 
@@ -483,7 +513,7 @@ def _check(path, body, scale) -> _Checked:
             hint = ": too small for a garment of this body (is it in kilometres, or a fragment?)"
         report.add("problem", "scale", f"the garment's bounding box{unit} ({_bbox_text(hi - lo)}) is {ratio:.3g} "
                    f"times the body's size ({body_size:.2f} m){hint}", 1)
-        return out
+        return False
     if not overlap(lo, hi):
         turned = np.stack([v[used][:, 0], v[used][:, 2], -v[used][:, 1]], axis=1)
         zup = overlap(turned.min(axis=0), turned.max(axis=0))
@@ -491,23 +521,30 @@ def _check(path, body, scale) -> _Checked:
         report.add("problem", "placement", f"the garment's bounding box{unit} {_point_text(lo)} .. {_point_text(hi)} "
                    f"does not meet the body's {_point_text(body_lo)} .. {_point_text(body_hi)}{hint}: garments "
                    f"must be modelled on the template body in rest pose, Y-up, in metres", 1)
-        return out
+        return False
+    return True
 
-    # ---- polygons whose fan folds over itself (non-convex): the triangles would overlap
-    if p.polygons:
-        line_ids, group = np.unique(p.face_lines, return_inverse=True)
-        sizes = np.bincount(group)
-        area_vec = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
-        total = np.zeros((len(line_ids), 3))
-        np.add.at(total, group, area_vec)
-        folded = (sizes[group] > 1) & (np.einsum("ij,ij->i", area_vec, total[group]) < 0)
-        if np.any(folded):
-            lines = np.unique(p.face_lines[folded])
-            report.add("problem", "non_convex_polygons", f"{len(lines)} polygon(s) are not convex: their fan "
-                       f"triangulation folds over itself (triangulate them in your modelling tool)", len(lines),
-                       [f"line {int(ln)}" for ln in lines])
 
-    # ---- safe repairs: duplicate and unreferenced vertices
+def _check_polygons_convex(v: np.ndarray, f: np.ndarray, face_lines: np.ndarray, report: ImportReport) -> None:
+    """Refuse polygons whose triangle fan folds over itself (non-convex: the triangles would
+    overlap). v [m] (V, 3); f (F, 3) the fans' triangles; face_lines (F,) their OBJ lines."""
+    line_ids, group = np.unique(face_lines, return_inverse=True)
+    sizes = np.bincount(group)
+    area_vec = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    total = np.zeros((len(line_ids), 3))
+    np.add.at(total, group, area_vec)
+    folded = (sizes[group] > 1) & (np.einsum("ij,ij->i", area_vec, total[group]) < 0)
+    if np.any(folded):
+        lines = np.unique(face_lines[folded])
+        report.add("problem", "non_convex_polygons", f"{len(lines)} polygon(s) are not convex: their fan "
+                   f"triangulation folds over itself (triangulate them in your modelling tool)", len(lines),
+                   [f"line {int(ln)}" for ln in lines])
+
+
+def _merge_and_drop_vertices(v: np.ndarray, f: np.ndarray, report: ImportReport) -> tuple[np.ndarray, np.ndarray]:
+    """The safe repairs: merge duplicate vertices (within MERGE_TOLERANCE [m]) and drop unreferenced
+    ones. v [m] (V, 3), f (F, 3) -> the kept vertices [m] (V', 3) and f re-indexed (F, 3), rows in
+    the same order; records the counts in the report's stats."""
     rep = _merge_duplicates(v, MERGE_TOLERANCE)
     merged = int(np.sum(rep != np.arange(len(v))))
     if merged:
@@ -525,9 +562,17 @@ def _check(path, body, scale) -> _Checked:
     new_index = np.full(len(v), -1, dtype=np.int64)
     new_index[used] = np.arange(len(used))
     v, f = v[used], new_index[f]
-    st["vertices"], st["triangles"] = len(v), len(f)
+    report.stats["vertices"], report.stats["triangles"] = len(v), len(f)
+    return v, f
 
-    # ---- degenerate and duplicated triangles
+
+def _check_triangles(v: np.ndarray, f: np.ndarray, face_lines: np.ndarray, report: ImportReport) -> np.ndarray:
+    """Refuse degenerate and duplicated triangles; warn about thin ones; record the smallest angles
+    [deg] and edge lengths [m]. v [m] (V, 3), f (F, 3), face_lines (F,) their OBJ lines.
+    Returns which triangles repeat a corner, shape (F,) bool."""
+    from simgen.garment import mesh as m
+
+    st = report.stats
     collapsed = (f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 2] == f[:, 0])
     area = m.triangle_areas(v, f)
     longest = np.max(np.stack([np.linalg.norm(v[f[:, a]] - v[f[:, b]], axis=1)
@@ -538,13 +583,13 @@ def _check(path, body, scale) -> _Checked:
         k = np.flatnonzero(degenerate)
         report.add("problem", "degenerate_triangles", f"{len(k)} degenerate triangle(s) (zero area, collinear or "
                    f"repeated corners)", len(k),
-                   [f"line {p.face_lines[t]} (area {area[t]:.2g} m^2)" for t in k])
+                   [f"line {face_lines[t]} (area {area[t]:.2g} m^2)" for t in k])
     sorted_f = np.sort(f, axis=1)
     _, first, counts = np.unique(sorted_f, axis=0, return_index=True, return_counts=True)
     if np.any(counts > 1):
         dupes = first[counts > 1]
         report.add("problem", "duplicate_triangles", f"{int(np.sum(counts - 1))} triangle(s) repeat another "
-                   f"triangle's corners", int(np.sum(counts - 1)), [f"line {p.face_lines[t]}" for t in dupes])
+                   f"triangle's corners", int(np.sum(counts - 1)), [f"line {face_lines[t]}" for t in dupes])
     good = ~degenerate
     if np.any(good):
         angles = m.triangle_angles(v, f[good])
@@ -559,9 +604,14 @@ def _check(path, body, scale) -> _Checked:
         lengths = m.edge_lengths(v, e)
         st["edge_length_min"], st["edge_length_median"], st["edge_length_max"] = (
             float(lengths.min()), float(np.median(lengths)), float(lengths.max()))
+    return collapsed
 
-    # ---- topology (of the triangles with three distinct corners; collapsed ones are reported above)
-    proper = f[~collapsed]
+
+def _check_topology(v: np.ndarray, proper: np.ndarray, report: ImportReport) -> None:
+    """Refuse non-manifold edges and vertices; warn about several pieces. v [m] (V, 3); proper (F', 3)
+    the triangles with three distinct corners (collapsed ones are reported as degenerate)."""
+    from simgen.garment import mesh as m
+
     nm_edges = m.non_manifold_edges(proper)
     if len(nm_edges):
         report.add("problem", "non_manifold_edges", f"{len(nm_edges)} edge(s) are shared by more than two "
@@ -573,11 +623,15 @@ def _check(path, body, scale) -> _Checked:
                    f"share no edge there (bow-tie vertices)", len(nm_verts),
                    [f"vertex at {_point_text(v[k])}" for k in nm_verts])
     ncomp, _ = m.connected_components(proper, len(v))
-    st["connected_components"] = ncomp
+    report.stats["connected_components"] = ncomp
     if ncomp > 1:
         report.add("warning", "several_pieces", f"the garment has {ncomp} separate pieces", ncomp)
 
-    # ---- the body: inside, too close, and which side the triangles face
+
+def _check_body_distance(v: np.ndarray, body, report: ImportReport):
+    """Refuse vertices inside the body; warn about those within MIN_CLEARANCE of it; record the
+    distance statistics [m]. v [m] (V, 3). Returns the closest body points of the vertices (their
+    ``distance`` [m] (V,), negative inside; ``face`` and ``bary`` on the body's template)."""
     from simgen.garment.skinning import closest_body_points
 
     near = closest_body_points(v, body)
@@ -595,24 +649,31 @@ def _check(path, body, scale) -> _Checked:
                    f"{MIN_CLEARANCE * 1000:g} mm of the body (the templates keep {MIN_CLEARANCE * 1000:g} mm)",
                    int(close.sum()), [f"vertex at {_point_text(v[t])} ({dist[t] * 1000:.2f} mm)"
                                       for t in np.flatnonzero(close)])
+    st = report.stats
     st["distance_to_body_min"] = float(dist.min())
     st["distance_to_body_median"] = float(np.median(dist))
     st["distance_to_body_p90"] = float(np.percentile(dist, 90))
     st["distance_to_body_max"] = float(dist.max())
+    return near
 
-    # ---- orientation (repaired when the surface is a clean manifold)
-    if report.problems:
-        return out
+
+def _orient_outward(v: np.ndarray, f: np.ndarray, face_lines: np.ndarray, body, near,
+                    report: ImportReport) -> np.ndarray | None:
+    """Re-orient a clean manifold's triangles consistently, then each connected piece so that its
+    normals face away from the body (an area-weighted vote). v [m] (V, 3), f (F, 3), face_lines (F,);
+    near: the vertices' closest body points. Returns the re-oriented faces (F, 3), or None (and a
+    problem) when the surface is not orientable."""
+    from simgen.garment import mesh as m
+
     flips = _orientation_flips(f)
     if flips is None:
         report.add("problem", "non_orientable", "the surface is not orientable (a Moebius-like twist): its "
                    "triangles cannot all face one side", 1)
-        return out
+        return None
     if np.any(flips):
         f = np.where(flips[:, None], f[:, ::-1], f)
         report.add("repair", "reoriented", f"re-oriented {int(flips.sum())} triangle(s) to agree with their "
-                   f"neighbours", int(flips.sum()), [f"line {p.face_lines[t]}" for t in np.flatnonzero(flips)])
-    # Normals must face away from the body: vote per connected piece, weighted by area.
+                   f"neighbours", int(flips.sum()), [f"line {face_lines[t]}" for t in np.flatnonzero(flips)])
     closest = np.einsum("pc,pcd->pd", near.bary, body.v_template[body.faces[near.face]])
     away = v - closest
     away /= np.maximum(np.linalg.norm(away, axis=1, keepdims=True), 1e-12)
@@ -626,15 +687,20 @@ def _check(path, body, scale) -> _Checked:
         f = np.where(inward[:, None], f[:, ::-1], f)
         report.add("repair", "flipped_outward", f"flipped {int(inward.sum())} triangle(s) so that their normals "
                    f"face away from the body", int(inward.sum()))
+    return f
+
+
+def _record_openings(f: np.ndarray, report: ImportReport) -> None:
+    """Record the number of openings (boundary loops) of f (F, 3) and their sizes [vertices]; a
+    warning when they cannot be traced."""
+    from simgen.garment import mesh as m
 
     try:
         loops = m.boundary_loops(f)
-        st["openings"] = len(loops)
-        st["opening_sizes"] = sorted((len(lp) for lp in loops), reverse=True)
+        report.stats["openings"] = len(loops)
+        report.stats["opening_sizes"] = sorted((len(lp) for lp in loops), reverse=True)
     except ValueError as exc:
         report.add("warning", "openings", f"openings could not be traced ({exc})")
-    out.vertices, out.faces, out.distance = v, f, dist
-    return out
 
 
 def validate_obj(path, body, *, scale: float | None = None) -> ImportReport:
