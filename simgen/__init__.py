@@ -1,8 +1,9 @@
 """simgen: garment simulation on animated parametric bodies (NVIDIA Warp), training datasets,
 and learned garment models (PyTorch).
 
-Data flows one way: body + motion + garment -> sim -> dataset -> learn -> io. The subpackages are
-imported on demand so that ``import simgen`` stays light (torch and warp load only when used):
+Data flows one way: body + motion + garment -> sim -> dataset -> physics -> learn, with io (USD,
+renders) and the shared settings underneath (docs/architecture.md). The subpackages are imported
+on demand so that ``import simgen`` stays light (torch and warp load only when used):
 
 - ``simgen.body``: SMPL-format body model (numpy reference, torch, Warp), the open default body.
 - ``simgen.motion``: MotionClip, the procedural library, AMASS/BVH loaders, slerp and resampling.

@@ -89,3 +89,25 @@ def test_the_torch_losses_import_without_warp():
             "print('warp' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
+
+
+def test_the_readme_layout_matches_the_tree():
+    """Every path the README's layout names exists, and every public module, package and top-level
+    folder of the repository is named there."""
+    import re
+
+    root = PACKAGE.parent
+    text = (root / "README.md").read_text()
+    block = text.split("## Layout", 1)[1].split("```", 2)[1]
+    # The first column of each line, and modules named in a description ("...; simgen/x.py: ...").
+    named = {line.split()[0].rstrip("/") for line in block.splitlines() if line and not line[0].isspace()}
+    named |= set(re.findall(r"simgen/\w+\.py", block))
+    assert named, "no layout block found"
+    for name in named:
+        assert (root / name).exists(), f"README layout names {name}, which does not exist"
+    public = {f"simgen/{p.name}" for p in PACKAGE.iterdir()
+              if not p.name.startswith("_") and (p.suffix == ".py" or (p / "__init__.py").exists())}
+    top = {p.name for p in root.iterdir() if p.is_dir() and not p.name.startswith(".") and p.name != "simgen"
+           and not p.name.endswith(".egg-info") and p.name not in ("build", "dist")}
+    missing = sorted((public | top) - named)
+    assert not missing, f"README layout does not name {missing}"
