@@ -89,8 +89,6 @@ def main(argv=None) -> int:
         tmp = tempfile.mkdtemp(prefix="simgen-bench-")
         out = str(Path(tmp) / "store")
     try:
-        import simgen.sim as sim
-
         t0 = time.perf_counter()
         reports = generate_dataset(spec, out, max_sequences=a.max_sequences, time_budget=a.time_budget)
         wall = time.perf_counter() - t0
@@ -106,7 +104,6 @@ def main(argv=None) -> int:
             "device": info,
             "commit": _commit(),
             "spec": spec.name,
-            "batched_solver": hasattr(sim, "simulate_batch"),
             "sizes": {"garment": ds.garment_name, "vertices": ds.attrs["garment"]["vertices"],
                       "triangles": ds.attrs["garment"]["triangles"], "shapes": len(spec.shapes()),
                       "motions": len(spec.motions()), "planned_sequences": r.planned_sequences,
