@@ -57,10 +57,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--material", default=None,
                    help="material preset (cotton, interlock, denim, silk); default: the garment's own")
     p.add_argument("--frames", type=int, default=None, help="simulate only the first N frames (default: the clip)")
-    p.add_argument("--substeps", type=int, default=10, help="solver steps per frame (10 at 30 fps: 3.33 ms)")
-    p.add_argument("--relax-frames", type=int, default=15, help="start protocol: relax on the body at rest")
-    p.add_argument("--ramp-frames", type=int, default=30, help="start protocol: ramp shape and pose (>= 1)")
-    p.add_argument("--rest-frames", type=int, default=15, help="start protocol: rest in the first pose")
+    # Left out: SimulationConfig's own defaults (10 substeps; 15, 30, 15 protocol frames).
+    p.add_argument("--substeps", type=int, default=None, help="solver steps per frame (default 10 at 30 fps: 3.33 ms)")
+    p.add_argument("--relax-frames", type=int, default=None, help="start protocol: relax on the body at rest")
+    p.add_argument("--ramp-frames", type=int, default=None, help="start protocol: ramp shape and pose (>= 1)")
+    p.add_argument("--rest-frames", type=int, default=None, help="start protocol: rest in the first pose")
     p.add_argument("--device", default=None, help="Warp device: cpu, cuda or cuda:N (default: Warp's)")
     p.add_argument("--usda", action="store_true", help="write text USD (.usda) instead of binary (.usdc)")
     p.add_argument("--out", type=Path, default=Path("simgen-example-sim"), help="output folder")
@@ -86,9 +87,10 @@ def main(argv: list[str] | None = None) -> int:
         garment = load_garment(args.garment, body=body)
         clip = load_motion(args.motion)
         device = "cuda:0" if args.device == "cuda" else args.device
-        config = SimulationConfig(substeps=args.substeps, material=args.material, relax_frames=args.relax_frames,
-                                  ramp_frames=args.ramp_frames, rest_frames=args.rest_frames,
-                                  record_body=True, device=device)
+        given = {k: v for k, v in (("substeps", args.substeps), ("relax_frames", args.relax_frames),
+                                   ("ramp_frames", args.ramp_frames), ("rest_frames", args.rest_frames))
+                 if v is not None}
+        config = SimulationConfig(material=args.material, record_body=True, device=device, **given)
         frames = clip.num_frames if args.frames is None else args.frames
         total = config.relax_frames + config.ramp_frames + config.rest_frames + frames
         print(f"simulating {garment.name} ({garment.num_vertices:,} vertices) on body '{args.body}' doing "

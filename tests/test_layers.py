@@ -82,10 +82,13 @@ def test_find_cycle_finds_a_planted_circle():
 
 
 def test_the_torch_losses_import_without_warp():
-    # Importing the losses and building a garment's rest data (materials, hinges) stays Warp-free.
+    # Importing the losses, building a garment's rest data (materials, hinges) and reading a dataset
+    # spec into solver settings stay Warp-free.
     code = ("import sys, numpy as np, simgen.physics\n"
             "v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0.1]], float)\n"
             "simgen.physics.ClothRest.from_mesh(v, np.array([[0, 1, 2], [1, 3, 2]]))\n"
+            "from simgen.dataset.spec import load_spec\n"
+            "load_spec('thesis-tshirt').solver_options()\n"
             "print('warp' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"

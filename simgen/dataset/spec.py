@@ -99,22 +99,30 @@ __all__ = [
 PRESETS_DIR = Path(__file__).resolve().parent / "presets"
 ID_PATTERN = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]*$")
 
-# The [solver] keys that are the spec's own; the others come from SolverConfig and SimulationConfig.
+# The [solver] keys that are the spec's own (not SolverConfig's or SimulationConfig's).
 _SPEC_SOLVER = ("device", "fps")
 # SimulationConfig fields a spec sets, by table (name, bounds and default from their declarations).
 _SIMULATION_FIELDS = {"solver": ("substeps",), "protocol": ("relax_frames", "ramp_frames", "rest_frames")}
 
 
+def _declared(name: str):
+    """The default of a DatasetSpec field that a config declares: SimulationConfig's substeps and
+    protocol frames; whether SolverConfig's friction / self_contact is on by default."""
+    if name in ("friction", "self_contact"):
+        return solver_settings()[name].default is not None
+    return simulation_settings()[name].default
+
+
 @functools.cache
 def solver_settings() -> dict[str, Setting]:
     """The [solver] keys that set :class:`simgen.sim.SolverConfig` fields: every field, with the
-    declaration's type, bounds and default (``substeps`` there is SimulationConfig's, the frame's). A nested parameter class (contact, gravity, friction,
+    declaration's type, bounds and default. A nested parameter class (contact, gravity, friction,
     self_contact) is the sub-table [solver.NAME] of its own fields; an optional one (friction,
     self_contact) may instead be true or false, kept in the DatasetSpec field of that name.
     """
     from simgen.sim.config import SolverConfig
 
-    return {k: v for k, v in settings_of(SolverConfig).items() if k not in _SPEC_SOLVER}
+    return dict(settings_of(SolverConfig))
 
 
 @functools.cache
@@ -196,15 +204,15 @@ class DatasetSpec:
     max_frames: int = 0
     device: str = "auto"
     fps: float = 30.0
-    # None until parse_spec sets them from the declarations of SimulationConfig (substeps, the
-    # protocol's frames) and SolverConfig (friction, self_contact: on unless its default is None).
-    substeps: int | None = None
-    friction: bool | None = None
-    self_contact: bool | None = None
+    # Defaults from the declarations of SimulationConfig (substeps, the protocol's frames) and
+    # SolverConfig (friction, self_contact: on unless its default is None).
+    substeps: int = field(default_factory=lambda: _declared("substeps"))
+    friction: bool = field(default_factory=lambda: _declared("friction"))
+    self_contact: bool = field(default_factory=lambda: _declared("self_contact"))
     solver: dict = field(default_factory=dict)     # the SolverConfig fields set; a sub-table as a dict
-    relax_frames: int | None = None
-    ramp_frames: int | None = None
-    rest_frames: int | None = None
+    relax_frames: int = field(default_factory=lambda: _declared("relax_frames"))
+    ramp_frames: int = field(default_factory=lambda: _declared("ramp_frames"))
+    rest_frames: int = field(default_factory=lambda: _declared("rest_frames"))
     store_rest_frames: bool = True
     smoothing: dict = field(default_factory=lambda: {"method": "taubin", "iterations": 10, "lambda": 0.5,
                                                      "mu": -0.53, "boundary": "boundary"})

@@ -86,6 +86,11 @@ class BatchSetup:
         return self.config.substeps
 
     @property
+    def use_graph(self) -> bool:
+        """Whether frames replay as captured CUDA graphs (``config.cuda_graph`` on a CUDA device)."""
+        return bool(self.config.cuda_graph) and self.device.is_cuda
+
+    @property
     def dt(self) -> float:
         """The solver substep [s]: the frame time 1 / fps over ``substeps``."""
         return (1.0 / self.fps) / self.config.substeps

@@ -91,8 +91,8 @@ class SimulationConfig:
     a :class:`Material`; by default the garment's default_material, else cotton. The start
     protocol's phases (relax, ramp, rest) are described in :mod:`simgen.sim.driver`, the
     self-intersection test in :mod:`simgen.sim.frame_stats` (it sees as deep as the contact's
-``query_distance``). The CPU ignores ``cuda_graph`` and
-    runs the substeps eagerly (see :func:`simulate_batch`).
+    ``query_distance``). The CPU ignores ``cuda_graph`` and runs the substeps eagerly (see
+    :func:`simulate_batch`).
     """
 
     fps: float | None = setting(None, low=0.0, inclusive=False,

@@ -18,8 +18,8 @@ Each frame of 1/fps seconds is split into ``substeps`` solver steps. At every su
 posed on the device from joint rotations slerped at the substep's end time
 (:func:`simgen.motion.ops.quats_at`, then :meth:`WarpBody.pose_from_quats`), copied into the
 collider whose meshes are refit (never rebuilt), with body velocities (new - old) / dt, and the
-solver takes one step (its own ``SolverConfig.substeps`` subdivides that step further, with the body
-moving linearly). The solver's projection (``SolverConfig.project``) pushes any vertex found inside
+solver takes one step (a retried frame splits it further, with the body moving linearly:
+:mod:`simgen.sim.frame_runner`). The solver's projection (``SolverConfig.project``) pushes any vertex found inside
 the body back onto it after every step, so output frames are free of penetration except where the
 posed body intersects itself.
 

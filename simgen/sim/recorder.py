@@ -174,7 +174,7 @@ class Recorder:
             motion_fps=float(s.clips[i].fps), fps=s.fps, substeps=s.substeps, dt=s.dt, frames=s.num_out[i],
             betas=[float(b) for b in s.target_betas[i]], material=asdict(s.materials[i]),
             config=dict(relax_frames=cfg.relax_frames, ramp_frames=cfg.ramp_frames, rest_frames=cfg.rest_frames,
-                        device=str(s.device), cuda_graph=bool(cfg.cuda_graph) and s.device.is_cuda),
+                        device=str(s.device), cuda_graph=s.use_graph),
             solver=json.loads(json.dumps(asdict(cfg.solver), default=float)),
             batch_size=s.num_instances,
             initial_inside=int(s.initial[i]["inside_count"]),

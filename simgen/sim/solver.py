@@ -339,8 +339,8 @@ class ImplicitSolver:
         None for no body. Raises SolverDivergedError if a step stays non-finite after every retry.
         deferred_guard: run the guard's checks but only OR their bits into :attr:`deferred_bad`,
         with no host read and no retry (for CUDA graph capture; see the module doc).
-        substeps: equal substeps of this step instead of ``config.substeps`` (e.g. a caller's retry
-        of a failed step at a finer time step).
+        substeps: split this step into that many equal substeps (None: one), e.g. a caller's retry
+        of a failed step at a finer time step.
         """
         try:
             dt = float(dt)
