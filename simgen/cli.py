@@ -608,7 +608,8 @@ def dataset_check(
     require_complete: bool = typer.Option(False, "--require-complete", help="Planned but missing sequences fail."),
     as_json: bool = typer.Option(False, "--json", help="Print the report as JSON."),
 ) -> None:
-    """NaN/inf, cloth inside the posed body, strain outliers, missing frames, manifest vs store; exit 1 on a problem."""
+    """NaN/inf, cloth inside the posed body, strain outliers, the garment off the body, missing frames, manifest
+    vs store (exit 1 on a problem); cloth through itself is counted on every frame and reported."""
     from simgen.dataset._cli import run_check
 
     code = run_check(path, stride=stride, max_depth=max_depth, max_strain=max_strain,

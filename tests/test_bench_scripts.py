@@ -64,3 +64,15 @@ def test_dataset_bench_reports_rates_split_and_retries(tmp_path, overlap):
     assert split["write_hidden"] >= 0 and (overlap or split["write_hidden"] < 1e-6)
     assert r["retries"] == {"jobs": 0, "cloth_frames": 0, "simulate_s": 0.0}
     assert r["thesis_tshirt_plan"]["sequences"] == 340 and r["projected_thesis_s"] > 0
+
+
+def test_fit_report_measures_hem_and_sleeves(tmp_path):
+    result = run_script("fit_report.py", "--device", "cpu", "--garment", "tshirt_1k", "--frames", "2",
+                        "--variants", "no_friction", out=tmp_path / "fit.json")
+    assert result["garment"] == "tshirt_1k" and result["frames"] == 2
+    assert [r["shape"] for r in result["rows"]] == ["zero", "b0p2", "b0m2"]
+    for row in result["rows"]:
+        assert row["variant"] == "no_friction" and row["frames"] == 2
+        assert 0.0 <= row["hem_cling_frame0"] <= row["hem_cling_max"] <= 1.0
+        # The sleeves hang off the arm by centimetres, not metres (measured against the posed body).
+        assert 0.0 < row["sleeve_gap_frame45_m"] <= row["sleeve_gap_max_m"] < 0.3

@@ -194,6 +194,14 @@ def test_check_passes_then_finds_damage(tiny, tmp_path, monkeypatch):
     assert rep.sequences == 4 and rep.frames == 20 and rep.frames_checked_body == 20
     assert 0 < rep.max_strain < 1.0
     assert rep.min_body_share > 0.5 and rep.max_support_drop < 0.05 and rep.min_height > 0.5
+    # The crossing edges counted on the device while generating (float32 positions widened to
+    # float64) equal the check's count from the stored frames.
+    ds = open_dataset(tiny["out"])
+    for sid in ds.sequence_ids():
+        stored = np.asarray(ds.sequence(sid)["frame_stats"]["crossing_edges"])
+        listed = rep.crossings.get(sid, {"frames": 0})
+        assert int(np.sum(stored > 0)) == listed["frames"], sid
+        assert ds.loc.node_attrs(f"sequences/{sid}")["stats"]["crossing_frames"] == listed["frames"]
     # Damage copies of the store, one way each; every one must be found.
     def damaged(name, how, stride=1):
         d = tmp_path / name

@@ -132,6 +132,7 @@ def run_info(path, *, as_json=False) -> None:
                      "frames": e.get("frames"), "max_penetration_mm": _mm(st.get("max_penetration")),
                      "strain_mean": st.get("strain_mean"), "strain_max": st.get("strain_max"),
                      "retries": st.get("solver_retries"), "attempts": st.get("attempts"),
+                     "crossing_frames": st.get("crossing_frames"), "max_crossing_edges": st.get("max_crossing_edges"),
                      "wall_time": st.get("wall_time")})
     at = ds.attrs
     head = {"path": ds.path, "garment": at["garment"], "body": at["body"], "material": at["material"]["name"],
@@ -139,7 +140,10 @@ def run_info(path, *, as_json=False) -> None:
             "protocol": [at["solver"]["relax_frames"], at["solver"]["ramp_frames"], at["solver"]["rest_frames"]],
             "shapes": ds.shape_ids(), "template": ds.manifest["template"] is not None,
             "sequences": len(rows), "frames": sum(r["frames"] or 0 for r in rows),
-            "failed": sorted(ds.manifest.get("failed", {})), "simgen_version": at.get("simgen_version")}
+            "failed": sorted(ds.manifest.get("failed", {})), "simgen_version": at.get("simgen_version"),
+            # Stores made before the crossing counter have no counts (None).
+            "sequences_with_crossings": (sum(1 for r in rows if r["crossing_frames"])
+                                         if all(r["crossing_frames"] is not None for r in rows) else None)}
     if as_json:
         print(json.dumps({"dataset": head, "sequences": rows}, indent=2))
         return
@@ -160,15 +164,20 @@ def run_info(path, *, as_json=False) -> None:
                            f"{head['frames']:,} frames")
     if head["failed"]:
         t.add_row("failed", ", ".join(head["failed"]))
+    if head["sequences_with_crossings"] is not None:
+        t.add_row("cloth through itself", f"{head['sequences_with_crossings']} sequences have frames with crossing "
+                                          f"edges (`dataset check` lists them)")
     c = Console()
     c.print(t)
     s = Table(title=f"{len(rows)} sequences (id = motion__shape)")
     s.add_column("id", overflow="fold", min_width=min(max((len(r["id"]) for r in rows), default=2), 40))
-    for col in ("split", "frames", "max pen. [mm]", "strain mean", "strain max", "retries", "wall [s]"):
+    for col in ("split", "frames", "max pen. [mm]", "strain mean", "strain max", "retries", "crossing frames",
+                "wall [s]"):
         s.add_column(col, justify="right")
     for r in rows:
+        crossing = "-" if r["crossing_frames"] is None else f"{r['crossing_frames']} (max {r['max_crossing_edges']})"
         s.add_row(r["id"], str(r["split"]), str(r["frames"]), _fmt(r["max_penetration_mm"], ".2f"),
-                  _fmt(r["strain_mean"], ".3f"), _fmt(r["strain_max"], ".3f"), str(r["retries"]),
+                  _fmt(r["strain_mean"], ".3f"), _fmt(r["strain_max"], ".3f"), str(r["retries"]), crossing,
                   _fmt(r["wall_time"], ".1f"))
     c.print(s)
 

@@ -25,7 +25,12 @@ Problems:
 - fits whose stored displacement is not smooth(S_c) - T_c;
 - jobs recorded as failed in the manifest.
 
-Warnings: planned sequences not generated yet (a problem with ``require_complete``), leftovers of an
+Warnings: cloth through itself: every frame of every sequence is counted for crossing edges (a
+garment edge through a garment triangle, :mod:`simgen.garment.crossings`) and the report lists every
+sequence with crossings; a sequence with crossings on more than ``MAX_CROSSING_SHARE`` (0.5%) of its
+frames or on more than ``MAX_CROSSING_RUN`` (3) frames in a row is named in a "self-crossing"
+warning (a warning until the solver's self-collision is on by default: today's stores have such
+sequences, docs/sim.md "Not yet"); planned sequences not generated yet (a problem with ``require_complete``), leftovers of an
 interrupted run (removed by the next ``generate``).
 """
 
@@ -39,9 +44,12 @@ from simgen.dataset.quality import DEFAULT_MAX_STRAIN
 from simgen.dataset.storage import STAGING, arrays_checksum
 from simgen.dataset.store import node_arrays
 
-__all__ = ["CheckReport", "check_dataset", "DEFAULT_MAX_DEPTH", "DEFAULT_MAX_STRAIN"]
+__all__ = ["CheckReport", "check_dataset", "DEFAULT_MAX_DEPTH", "DEFAULT_MAX_STRAIN", "MAX_CROSSING_SHARE",
+           "MAX_CROSSING_RUN"]
 
 DEFAULT_MAX_DEPTH = 1.0e-3     # [m] the solver's contract: no vertex more than 1 mm inside (self-intersections apart)
+MAX_CROSSING_SHARE = 0.005     # a sequence is named with crossing edges on more than this share of its frames ...
+MAX_CROSSING_RUN = 3           # ... or on more than this many frames in a row
 _POSE_CHUNK = 16
 _STRAIN_CHUNK = 32
 #: The per-frame arrays every sequence node holds.
@@ -122,6 +130,9 @@ class CheckReport:
     min_body_share: float = 1.0
     max_support_drop: float = 0.0
     min_height: float = float("inf")
+    crossing_frames: int = 0
+    max_crossing_edges: int = 0
+    crossings: dict = field(default_factory=dict)
     planned: int | None = None
 
     @property
@@ -140,7 +151,9 @@ class CheckReport:
                 "max_depth": self.max_depth, "max_strain": self.max_strain,
                 "max_strain_regular": self.max_strain_regular, "pinched_strain_frames": self.pinched_strain_frames,
                 "min_body_share": self.min_body_share, "max_support_drop": self.max_support_drop,
-                "min_height": self.min_height if np.isfinite(self.min_height) else None, "planned": self.planned}
+                "min_height": self.min_height if np.isfinite(self.min_height) else None,
+                "crossing_frames": self.crossing_frames, "max_crossing_edges": self.max_crossing_edges,
+                "crossings": self.crossings, "planned": self.planned}
 
     def format(self) -> str:
         from simgen.sim.placement import ON_BODY_DISTANCE
@@ -153,7 +166,9 @@ class CheckReport:
                  + (f"; on the body: at least {100 * self.min_body_share:.0f}% of the vertices within "
                     f"{100 * ON_BODY_DISTANCE:g} cm, support at most {100 * self.max_support_drop:.1f} cm below its "
                     f"skinned position, lowest vertex {1e3 * self.min_height:.1f} mm"
-                    if np.isfinite(self.min_height) else "")]
+                    if np.isfinite(self.min_height) else "")
+                 + f"; cloth through itself on {self.crossing_frames} frames of {len(self.crossings)} sequences"
+                   f" (at most {self.max_crossing_edges} crossing edges)"]
         for p in self.problems:
             lines.append(f"PROBLEM {p['node']} [{p['check']}]: {p['message']}")
         for w in self.warnings:
@@ -171,7 +186,8 @@ class _Context:
     shapes of its triangles (:func:`triangle_rest_inverse`); num_vertices: V of the cloth;
     reference: the garment's :class:`simgen.sim.placement.GarmentReference` on the body; floor [m]
     or None (stores made before the floor have none); penetration: keyword arguments of
-    :func:`body_penetration` (device, home_parts (V,), part_masks (Fb,), pinch_distance [m]).
+    :func:`body_penetration` (device, home_parts (V,), part_masks (Fb,), pinch_distance [m]);
+    crossings: the cloth's :class:`simgen.garment.crossings.CrossingCounter`.
     """
 
     tpl: dict | None
@@ -181,6 +197,7 @@ class _Context:
     reference: object | None
     floor: float | None
     penetration: dict
+    crossings: object | None
 
 
 def _verify_node(rep: CheckReport, loc, rel: str, entry: dict | None, node: str) -> bool:
@@ -259,7 +276,12 @@ def _context(ds, bm, template_ok: bool, device: str) -> _Context:
     contact = solver_config.get("contact") or {}
     pinch_distance = float(contact.get("pinch_distance", ContactParams.pinch_distance))
     penetration = dict(device=device, home_parts=home_parts, part_masks=part_masks, pinch_distance=pinch_distance)
-    return _Context(tpl, faces, rest_inv, V, reference, floor, penetration)
+    crossings = None
+    if tpl is not None:
+        from simgen.garment.crossings import CrossingCounter
+
+        crossings = CrossingCounter(faces, V, device)
+    return _Context(tpl, faces, rest_inv, V, reference, floor, penetration, crossings)
 
 
 def _check_fits(rep: CheckReport, ds, ctx: _Context) -> None:
@@ -379,6 +401,33 @@ def _check_sequence_strain(rep: CheckReport, node: str, seq, bm, ctx: _Context,
     return None
 
 
+def _longest_run(flags: np.ndarray) -> int:
+    """The most consecutive True entries of a bool array (T,)."""
+    best = run = 0
+    for f in flags:
+        run = run + 1 if f else 0
+        best = max(best, run)
+    return best
+
+
+def _check_sequence_crossings(rep: CheckReport, node: str, sid: str, x: np.ndarray, ctx: _Context) -> None:
+    """Crossing edges of one sequence on every frame, x [m] (T, V, 3); a warning past the limits."""
+    counts = ctx.crossings.count(x)
+    crossed = counts > 0
+    if not crossed.any():
+        return
+    n, run, T = int(crossed.sum()), _longest_run(crossed), len(counts)
+    rep.crossing_frames += n
+    rep.max_crossing_edges = max(rep.max_crossing_edges, int(counts.max()))
+    rep.crossings[sid] = {"frames": n, "longest_run": run, "max_edges": int(counts.max()),
+                          "first_frame": int(np.argmax(crossed))}
+    if n > MAX_CROSSING_SHARE * T or run > MAX_CROSSING_RUN:
+        rep.warn(node, "self-crossing", f"cloth passes through itself on {n} of {T} frames (up to "
+                                           f"{int(counts.max())} crossing edges, {run} frames in a row, first at "
+                                           f"frame {int(np.argmax(crossed))}; limits {100 * MAX_CROSSING_SHARE:g}% "
+                                           f"of the frames, {MAX_CROSSING_RUN} in a row)")
+
+
 def _check_completeness(rep: CheckReport, ds, require_complete: bool) -> None:
     """The generated sequences against the plan of the spec stored with ``ds``: missing ones are a
     warning (a problem with require_complete), ones outside the plan a warning."""
@@ -444,6 +493,8 @@ def check_dataset(path, *, body=None, stride: int = 1, max_depth: float = DEFAUL
         if seq is None:
             continue
         _check_sequence_body(rep, node, seq, bm, ctx, stride, max_depth)
+        if ctx.crossings is not None:
+            _check_sequence_crossings(rep, node, sid, seq[0], ctx)
         if ctx.rest_inv is not None:
             pinched = _check_sequence_strain(rep, node, seq, bm, ctx, max_strain)
             if pinched is not None:

@@ -151,6 +151,8 @@ def _frame_stats(result, faces, rest_inverse) -> tuple[dict, dict]:
         "min_body_share": float(np.min(per_frame["body_share"])),
         "max_support_drop": float(np.max(per_frame["support_drop"])),
         "min_height": float(np.min(per_frame["min_height"])),
+        "crossing_frames": int(np.sum(per_frame["crossing_edges"] > 0)),
+        "max_crossing_edges": int(np.max(per_frame["crossing_edges"])),
     }
     return per_frame, summary
 

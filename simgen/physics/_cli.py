@@ -166,14 +166,16 @@ def _print_table(console, reports, summary) -> None:
     for col in cols:
         table.add_column(col, justify="right", no_wrap=True)
     table.add_column("inside %", justify="right", no_wrap=True)
+    table.add_column("frames with crossings", justify="right", no_wrap=True)
     for rep in reports:
         m = rep.means()
+        crossing = rep.values["crossing_edges"]
         table.add_row(f"{rep.name} ({rep.num_frames})", *(f"{m[c]:.3g}" for c in cols),
-                      f"{100 * m['inside_share']:.2f}")
+                      f"{100 * m['inside_share']:.2f}", f"{int((crossing > 0).sum())} (max {int(crossing.max())})")
     if len(reports) > 1:
         means = {k: float(np.nanmean([r.means()[k] for r in reports])) for k in (*cols, "inside_share")}
         table.add_row(f"[bold]mean of {len(reports)}[/]", *(f"{means[c]:.3g}" for c in cols),
-                      f"{100 * means['inside_share']:.2f}")
+                      f"{100 * means['inside_share']:.2f}", "")
     console.print(table)
     for c in summary["potential_comparisons"]:
         console.print(f"{c['reference']}: incremental potential of the simulated frame below the LBS frame on "

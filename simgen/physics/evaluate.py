@@ -12,6 +12,8 @@
     collision   k max(margin - d, 0)^p [J]             (eq. 5.12, the solver's contact term)
     potential   inertia + strain + bending + gravity + collision [J] (eq. 5.4's objective)
     inside_share  share of garment vertices with d < 0 (inside the body) [-]
+    crossing_edges  garment edges that pass through a garment triangle (cloth through itself;
+                  :mod:`simgen.garment.crossings`, float64, every frame) [-]
 
 Every energy is a sum over the garment's elements at one frame (joules per frame); a report's
 ``means()`` averages over frames (NaN frames left out). ``normalisation`` rescales the energies:
@@ -48,7 +50,7 @@ __all__ = ["PhysicsReport", "evaluate_sequence", "compare_potentials", "write_cs
            "NORMALISATIONS", "UNITS"]
 
 ENERGY_COLUMNS = ("strain", "bending", "gravity", "inertia", "collision", "potential")
-COLUMNS = ENERGY_COLUMNS + ("inside_share",)
+COLUMNS = ENERGY_COLUMNS + ("inside_share", "crossing_edges")
 NORMALISATIONS = ("frame", "vertex", "area", "snug")
 UNITS = {"frame": "J", "vertex": "J/vertex", "area": "J/m^2", "snug": "J"}
 
@@ -121,6 +123,14 @@ def _check_sequence(positions, body_vertices, rest: ClothRest, surface: BodySurf
     return pos, bv
 
 
+def _crossing_edges(positions: np.ndarray, faces) -> np.ndarray:
+    """Crossing edges per frame (T,) float64 of positions [m] (T, V, 3) (Warp, loaded here only)."""
+    from simgen.garment.crossings import count_crossing_edges
+
+    f = faces.cpu().numpy() if isinstance(faces, torch.Tensor) else np.asarray(faces)
+    return count_crossing_edges(positions, f).astype(np.float64)
+
+
 def evaluate_sequence(positions, body_vertices, rest: ClothRest, surface: BodySurface, fps: float, *,
                       contact_params: ContactParams = ContactParams(), gravity_params: GravityParams = GravityParams(),
                       root=None, normalisation: str = "frame", name: str = "sequence", meta: dict | None = None,
@@ -173,6 +183,7 @@ def evaluate_sequence(positions, body_vertices, rest: ClothRest, surface: BodySu
             if progress is not None:
                 progress(sl.stop, T)
     cols["potential"] = cols["inertia"] + cols["strain"] + cols["bending"] + cols["gravity"] + cols["collision"]
+    cols["crossing_edges"] = _crossing_edges(pos, r.faces)
     info = dict(meta or {})
     info.update(contact=dict(margin=contact_params.margin, stiffness=contact_params.stiffness,
                              power=contact_params.power, query_distance=contact_params.query_distance),

@@ -17,6 +17,7 @@ import numpy as np
 import warp as wp
 
 from simgen.body.surface_query import SELF_INTERSECTION_PROBE, classify_inside
+from simgen.garment.crossings import CrossingCounter
 from simgen.params import ContactParams
 from simgen.sim.collider import BodyCollider
 from simgen.sim.energies.contact import part_inputs
@@ -42,6 +43,7 @@ FRAME_STAT_KEYS = (
     "lbs_offset",                 # [m] median distance of the garment's support from its skinned (LBS) position
     "support_drop",               # [m] median sag of the support below its skinned position (along the body's up)
     "min_height",                 # [m] the lowest garment vertex (the floor: SolverConfig.floor)
+    "crossing_edges",             # garment edges through a garment triangle (simgen.garment.crossings)
 )
 
 
@@ -84,6 +86,9 @@ class FrameStats:
         self.skin_joint = wp.array(self.reference.skin_joint, dtype=wp.int32, device=dev)
         self.skin_weight = wp.array(self.reference.skin_weight.astype(np.float32), dtype=wp.float32, device=dev)
         self.betas = None
+        if model.num_vertices != ni * nvg:
+            raise ValueError("every instance of the model must be a copy of the garment")
+        self.crossings = CrossingCounter(garment.faces, nvg, str(dev), instances=ni)
 
     def measure(self, positions: wp.array, betas: np.ndarray) -> list[dict]:
         """One dict per instance (keys: the penetration and placement entries of FRAME_STAT_KEYS);
@@ -110,6 +115,7 @@ class FrameStats:
         x, lbs = positions.numpy(), self.lbs.numpy()
         up = self.lbs_up.numpy() - lbs
         dist, depth, inside, self_hit = (a.numpy() for a in (self.distance, self.depth, self.inside, self.self_hit))
+        crossing = self.crossings.count_points(positions)
         rows = []
         for k, (a, b) in enumerate(zip(self.starts[:-1], self.starts[1:])):
             d, ins, sh = depth[a:b], inside[a:b], self_hit[a:b]
@@ -120,6 +126,7 @@ class FrameStats:
                 inside_count=int(ins.sum()),
                 inside_share=float(ins.sum()) / max(b - a, 1),
                 self_intersection_count=int(sh.sum()),
+                crossing_edges=int(crossing[k]),
                 **placement_row(x[a:b], lbs[k], up[k], dist[a:b], self.reference.support),
             ))
         return rows
@@ -128,7 +135,7 @@ class FrameStats:
 def stack_stats(rows: list[dict]) -> dict:
     out = {}
     for k in FRAME_STAT_KEYS:
-        dtype = np.int64 if k in ("inside_count", "self_intersection_count", "retries", "unresolved",
+        dtype = np.int64 if k in ("inside_count", "self_intersection_count", "crossing_edges", "retries", "unresolved",
                                   "newton_iterations", "cg_iterations") else np.float64
         out[k] = np.array([r[k] for r in rows], dtype=dtype)
     return out

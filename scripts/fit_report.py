@@ -1,0 +1,136 @@
+"""How a top hangs on the body: the hem's clinging share and the sleeves' gap, per solver variant.
+
+Simulates a garment (default: the T-shirt) on the open body doing a motion (default: the demo's
+walk) at three shapes (beta = 0, beta 0 = +2 and -2), one batch per variant of the solver or the
+material, and measures on every output frame (issue 21's targets):
+
+- hem_cling: share of the garment's lowest 10 cm (by the template's height) within 3 mm of the
+  posed body surface (target: at most 0.5 on every frame);
+- sleeve_gap [m]: the largest distance of a sleeve vertex (skinned mostly to a shoulder, elbow or
+  wrist joint) from the body surface (target, arms down: at most 4 cm).
+
+Prints one JSON line per variant and writes them all (device, commit, sizes) to --out.
+
+    python scripts/fit_report.py --device cuda:0 --frames 91 --variants default no_friction preset
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+HEM_BAND = 0.10        # [m] the garment's lowest band measured for clinging
+CLING_DISTANCE = 3e-3  # [m] a vertex this close to the body clings
+ARM_JOINTS = (16, 17, 18, 19, 20, 21)  # SMPL shoulders, elbows, wrists
+
+
+def commit() -> str:
+    if os.environ.get("SIMGEN_COMMIT"):
+        return os.environ["SIMGEN_COMMIT"]
+    try:
+        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True, text=True,
+                              check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+
+
+def variants() -> dict:
+    """Name -> (SimulationConfig overrides, SolverConfig overrides)."""
+    from simgen.params import ContactParams, FrictionParams
+
+    return {
+        "default": ({}, {}),
+        "no_friction": ({}, {"friction": None}),
+        "friction_mu_0.1": ({"material_overrides": {"friction_coefficient": 0.1}}, {}),
+        "friction_load_cap_2": ({}, {"friction": FrictionParams(max_normal_load=2.0)}),
+        "friction_eps_1e-2": ({}, {"friction": FrictionParams(smoothing_velocity=1.0e-2)}),
+        "stiff_contact": ({}, {"contact": ContactParams(stiffness=1.0e5)}),
+        "interlock": ({"material": "interlock"}, {}),
+        "no_projection": ({}, {"project": False}),
+        "preset": ({"material": "interlock"}, {"newton_iterations": 2, "strain_limit": 0.5, "constraint_rounds": 2,
+                                               "contact": ContactParams(stiffness=1.0e5), "guard_energy": False}),
+    }
+
+
+def garment_parts(garment) -> tuple[np.ndarray, np.ndarray]:
+    """Bool masks (V,): the lowest HEM_BAND of the template, and the sleeve vertices."""
+    v = np.asarray(garment.vertices)
+    hem = v[:, 1] < v[:, 1].min() + HEM_BAND
+    w = np.asarray(garment.skin_weights)
+    sleeve = np.isin(np.argmax(w, axis=1), ARM_JOINTS)
+    return hem, sleeve
+
+
+def measure(result, hem: np.ndarray, sleeve: np.ndarray, device: str) -> dict:
+    """Per frame: hem_cling (share) and sleeve_gap [m], from the recorded posed body."""
+    from simgen.body.surface import SurfaceMesh
+
+    cling, gap = [], []
+    for x, b in zip(result.positions, result.body_vertices):
+        d = np.abs(SurfaceMesh(b, result.body_faces, device=device).project(x).signed_distance)
+        cling.append(float(np.mean(d[hem] < CLING_DISTANCE)))
+        gap.append(float(d[sleeve].max()) if sleeve.any() else 0.0)
+    return {"hem_cling": cling, "sleeve_gap": gap}
+
+
+def run(args) -> list[dict]:
+    import warp as wp
+
+    from simgen.body import load as load_body
+    from simgen.garment import load_garment
+    from simgen.motion import load_motion
+    from simgen.sim import SimulationConfig, SimulationJob, SolverConfig, simulate_batch
+
+    wp.config.quiet = True
+    body = load_body("open")
+    garment = load_garment(args.garment, body=body)
+    clip = load_motion(args.motion)
+    hem, sleeve = garment_parts(garment)
+    shapes = {"zero": None, "b0p2": [2.0], "b0m2": [-2.0]}
+    rows = []
+    for name in args.variants:
+        sim_over, solver_over = variants()[name]
+        cfg = SimulationConfig(record_body=True, device=args.device, solver=replace(SolverConfig(), **solver_over),
+                               **sim_over)
+        jobs = [SimulationJob(clip, betas=b, frames=args.frames, key=k) for k, b in shapes.items()]
+        for k, res in zip(shapes, simulate_batch(garment, body, jobs, cfg)):
+            m = measure(res, hem, sleeve, args.device)
+            row = {"variant": name, "shape": k, "frames": len(m["hem_cling"]),
+                   "hem_cling_max": max(m["hem_cling"]), "hem_cling_frame0": m["hem_cling"][0],
+                   "hem_cling_frame45": m["hem_cling"][min(45, len(m["hem_cling"]) - 1)],
+                   "sleeve_gap_max_m": max(m["sleeve_gap"]), "sleeve_gap_frame45_m":
+                       m["sleeve_gap"][min(45, len(m["sleeve_gap"]) - 1)]}
+            print(json.dumps(row), flush=True)
+            rows.append(row)
+    return rows
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--device", default="cuda:0")
+    p.add_argument("--garment", default="tshirt")
+    p.add_argument("--motion", default="walk")
+    p.add_argument("--frames", type=int, default=91)
+    p.add_argument("--variants", nargs="+", default=list(variants()), choices=list(variants()))
+    p.add_argument("--out", type=Path, default=None)
+    args = p.parse_args(argv)
+    rows = run(args)
+    if args.out is not None:
+        import warp as wp
+
+        info = {"benchmark": "fit_report", "device": wp.get_device(args.device).name, "commit": commit(),
+                "garment": args.garment, "motion": args.motion, "frames": args.frames, "rows": rows}
+        args.out.write_text(json.dumps(info, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

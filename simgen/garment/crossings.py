@@ -1,0 +1,166 @@
+"""Cloth passing through itself: the crossing-edge counter.
+
+Definition. An edge (p, q) of a garment's triangle mesh *crosses* a triangle (a, b, c) of the same
+mesh when the two share no vertex and the open segment meets the triangle's interior, decided
+exactly in float64 with no tolerance by five orientation signs, orient(u, v, w, z) = (v - u) .
+((w - u) x (z - u)):
+
+    orient(a, b, c, p) and orient(a, b, c, q) have opposite signs (p and q on either side of the
+    triangle's plane), and orient(p, q, a, b), orient(p, q, b, c), orient(p, q, c, a) are all
+    positive or all negative (the segment's line passes inside the triangle).
+
+A zero anywhere (the segment touching the plane, an edge or a vertex of the triangle) is no
+crossing: touching is contact, not passing through. An edge that crosses any triangle is a
+*crossing edge*; the count of a frame is the number of crossing edges. A clean fold (two layers
+lying on each other, however close) counts 0; a sheet pushed through another counts the edges
+that pierce it, and so does each of the other sheet's edges that pierce the first.
+
+Candidates come from a BVH over the triangles (float32 boxes padded by :data:`BOX_PAD`, so no pair
+that could cross is missed), the test itself runs in float64 in a Warp kernel (CPU or CUDA).
+Used by ``simgen dataset check`` and ``simgen eval physics``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from simgen.errors import InputError
+from simgen.garment.mesh import unique_edges
+
+__all__ = ["BOX_PAD", "CrossingCounter", "count_crossing_edges", "crossing_edges"]
+
+#: [m] padding of the float32 candidate boxes (float32 rounds a coordinate of a few metres by < 1e-6 m).
+BOX_PAD = 1.0e-5
+
+
+@wp.func
+def _orient(u: wp.vec3d, v: wp.vec3d, w: wp.vec3d, z: wp.vec3d) -> wp.float64:
+    return wp.dot(v - u, wp.cross(w - u, z - u))
+
+
+@wp.func
+def _segment_crosses_triangle(p: wp.vec3d, q: wp.vec3d, a: wp.vec3d, b: wp.vec3d, c: wp.vec3d) -> int:
+    zero = wp.float64(0.0)
+    sp = _orient(a, b, c, p)
+    sq = _orient(a, b, c, q)
+    if not ((sp > zero and sq < zero) or (sp < zero and sq > zero)):
+        return 0
+    t1 = _orient(p, q, a, b)
+    t2 = _orient(p, q, b, c)
+    t3 = _orient(p, q, c, a)
+    if (t1 > zero and t2 > zero and t3 > zero) or (t1 < zero and t2 < zero and t3 < zero):
+        return 1
+    return 0
+
+
+@wp.kernel(enable_backward=False)
+def _to_float64(points: wp.array(dtype=wp.vec3), x: wp.array(dtype=wp.vec3d)):
+    i = wp.tid()
+    p = points[i]
+    x[i] = wp.vec3d(wp.float64(p[0]), wp.float64(p[1]), wp.float64(p[2]))
+
+
+@wp.kernel(enable_backward=False)
+def _crossing_kernel(mesh: wp.uint64, x: wp.array(dtype=wp.vec3d), faces: wp.array(dtype=wp.int32, ndim=2),
+                     edges: wp.array(dtype=wp.int32, ndim=2), pad: float, num_vertices: int,
+                     crossing: wp.array(dtype=wp.int32), per_instance: wp.array(dtype=wp.int32)):
+    # Instance k owns vertices [k V, (k + 1) V); its edges are tested against its own triangles only.
+    e = wp.tid()
+    i = edges[e, 0]
+    j = edges[e, 1]
+    instance = i / num_vertices
+    p = x[i]
+    q = x[j]
+    pf = wp.vec3(wp.float32(p[0]), wp.float32(p[1]), wp.float32(p[2]))
+    qf = wp.vec3(wp.float32(q[0]), wp.float32(q[1]), wp.float32(q[2]))
+    lo = wp.min(pf, qf) - wp.vec3(pad)
+    hi = wp.max(pf, qf) + wp.vec3(pad)
+    query = wp.mesh_query_aabb(mesh, lo, hi)
+    f = int(0)
+    crossing[e] = 0
+    while wp.mesh_query_aabb_next(query, f):
+        a = faces[f, 0]
+        b = faces[f, 1]
+        c = faces[f, 2]
+        if a / num_vertices != instance or a == i or a == j or b == i or b == j or c == i or c == j:
+            continue
+        if _segment_crosses_triangle(p, q, x[a], x[b], x[c]) != 0:
+            crossing[e] = 1
+            wp.atomic_add(per_instance, instance, 1)
+            return
+
+
+class CrossingCounter:
+    """Counts the crossing edges (module doc) of a triangle mesh over many frames, for one or for
+    ``instances`` copies of it side by side (vertices instance by instance, as a batched
+    simulation holds them; each copy is tested against itself only).
+
+    faces (F, 3) int: the garment's triangles; num_vertices V of one copy; device: Warp device
+    ("cpu", "cuda:0", ...). The BVH is built once and refit for every frame.
+    """
+
+    def __init__(self, faces, num_vertices: int, device: str = "cpu", instances: int = 1) -> None:
+        f = np.asarray(faces)
+        if f.ndim != 2 or f.shape[1] != 3 or len(f) == 0 or f.min() < 0 or f.max() >= num_vertices:
+            raise InputError(f"faces must have shape (F, 3) with indices below {num_vertices}")
+        self.device = device
+        self.num_vertices, self.instances = int(num_vertices), int(instances)
+        self.edges = unique_edges(f).astype(np.int32)                                   # (E, 2) of one copy
+        offsets = (np.arange(self.instances) * self.num_vertices).astype(np.int32)[:, None, None]
+        all_faces = (f.astype(np.int32)[None] + offsets).reshape(-1, 3)
+        n = self.instances * self.num_vertices
+        self._faces = wp.array(all_faces, dtype=wp.int32, device=device)
+        self._edges = wp.array((self.edges[None] + offsets).reshape(-1, 2), dtype=wp.int32, device=device)
+        self._x = wp.zeros(n, dtype=wp.vec3d, device=device)
+        self._points = wp.zeros(n, dtype=wp.vec3, device=device)
+        self._mesh = wp.Mesh(points=self._points, indices=self._faces.flatten())
+        self._out = wp.zeros(self._edges.shape[0], dtype=wp.int32, device=device)
+        self._per_instance = wp.zeros(self.instances, dtype=wp.int32, device=device)
+
+    def _launch(self) -> None:
+        self._mesh.refit()
+        self._per_instance.zero_()
+        wp.launch(_crossing_kernel, dim=self._edges.shape[0], device=self.device,
+                  inputs=[self._mesh.id, self._x, self._faces, self._edges, BOX_PAD, self.num_vertices],
+                  outputs=[self._out, self._per_instance])
+
+    def count_points(self, points: wp.array) -> np.ndarray:
+        """Crossing edges of every copy, int64 (instances,), at positions [m] already on the device:
+        float32 points (instances * V,) vec3 (e.g. a batched cloth state's positions)."""
+        wp.copy(self._points, points)
+        wp.launch(_to_float64, dim=len(self._x), device=self.device, inputs=[self._points], outputs=[self._x])
+        self._launch()
+        return self._per_instance.numpy().astype(np.int64)
+
+    def crossing(self, positions) -> np.ndarray:
+        """Which edges cross a triangle at one frame: bool (E,) over :attr:`edges`; positions [m] (V, 3)."""
+        x = np.asarray(positions, dtype=np.float64)
+        if self.instances != 1:
+            raise InputError("crossing() takes one copy; a counter of several counts them with count_points()")
+        if x.shape != (self.num_vertices, 3):
+            raise InputError(f"positions must have shape ({self.num_vertices}, 3), got {x.shape}")
+        if not np.all(np.isfinite(x)):
+            raise InputError("positions contain NaN or inf")
+        self._x.assign(x)
+        self._points.assign(x.astype(np.float32))
+        self._launch()
+        return self._out.numpy() != 0
+
+    def count(self, positions) -> np.ndarray:
+        """Crossing edges per frame, int64 (T,); positions [m] (T, V, 3) (or (V, 3): one frame)."""
+        x = np.asarray(positions, dtype=np.float64)
+        frames = x[None] if x.ndim == 2 else x
+        return np.array([int(self.crossing(frame).sum()) for frame in frames], dtype=np.int64)
+
+
+def crossing_edges(positions, faces, device: str = "cpu") -> np.ndarray:
+    """The crossing edges of one frame, int32 (K, 2) vertex pairs; positions [m] (V, 3), faces (F, 3)."""
+    counter = CrossingCounter(faces, len(positions), device)
+    return counter.edges[counter.crossing(positions)]
+
+
+def count_crossing_edges(positions, faces, device: str = "cpu") -> np.ndarray:
+    """Crossing edges per frame, int64 (T,); positions [m] (T, V, 3) or (V, 3); faces (F, 3)."""
+    x = np.asarray(positions)
+    return CrossingCounter(faces, x.shape[-2], device).count(x)
