@@ -15,8 +15,9 @@ crossing: touching is contact, not passing through. An edge that crosses any tri
 lying on each other, however close) counts 0; a sheet pushed through another counts the edges
 that pierce it, and so does each of the other sheet's edges that pierce the first.
 
-Candidates come from a BVH over the triangles (float32 boxes padded by :data:`BOX_PAD`, so no pair
-that could cross is missed), the test itself runs in float64 in a Warp kernel (CPU or CUDA).
+Candidates come from a BVH over the triangles of each copy (float32 boxes padded by
+:data:`BOX_PAD`, so no pair that could cross is missed), the test itself runs in float64 in a Warp
+kernel (CPU or CUDA).
 Used by ``simgen dataset check`` and ``simgen eval physics``.
 """
 
@@ -62,31 +63,35 @@ def _to_float64(points: wp.array(dtype=wp.vec3), x: wp.array(dtype=wp.vec3d)):
 
 
 @wp.kernel(enable_backward=False)
-def _crossing_kernel(mesh: wp.uint64, x: wp.array(dtype=wp.vec3d), faces: wp.array(dtype=wp.int32, ndim=2),
-                     edges: wp.array(dtype=wp.int32, ndim=2), pad: float, num_vertices: int,
-                     crossing: wp.array(dtype=wp.int32), per_instance: wp.array(dtype=wp.int32)):
-    # Instance k owns vertices [k V, (k + 1) V); its edges are tested against its own triangles only.
-    e = wp.tid()
-    i = edges[e, 0]
-    j = edges[e, 1]
-    instance = i / num_vertices
+def _crossing_kernel(meshes: wp.array(dtype=wp.uint64), x: wp.array(dtype=wp.vec3d),
+                     faces: wp.array(dtype=wp.int32, ndim=2), edges: wp.array(dtype=wp.int32, ndim=2), pad: float,
+                     num_vertices: int, crossing: wp.array(dtype=wp.int32), per_instance: wp.array(dtype=wp.int32)):
+    # Thread = (instance k, edge e of one copy); copy k owns vertices [k V, (k + 1) V) and its own BVH
+    # (copies overlap in space: one BVH over all would hand every edge the other copies' triangles).
+    tid = wp.tid()
+    num_edges = edges.shape[0]
+    instance = tid / num_edges
+    e = tid - instance * num_edges
+    base = instance * num_vertices
+    i = edges[e, 0] + base
+    j = edges[e, 1] + base
     p = x[i]
     q = x[j]
     pf = wp.vec3(wp.float32(p[0]), wp.float32(p[1]), wp.float32(p[2]))
     qf = wp.vec3(wp.float32(q[0]), wp.float32(q[1]), wp.float32(q[2]))
     lo = wp.min(pf, qf) - wp.vec3(pad)
     hi = wp.max(pf, qf) + wp.vec3(pad)
-    query = wp.mesh_query_aabb(mesh, lo, hi)
+    query = wp.mesh_query_aabb(meshes[instance], lo, hi)
     f = int(0)
-    crossing[e] = 0
+    crossing[tid] = 0
     while wp.mesh_query_aabb_next(query, f):
-        a = faces[f, 0]
-        b = faces[f, 1]
-        c = faces[f, 2]
-        if a / num_vertices != instance or a == i or a == j or b == i or b == j or c == i or c == j:
+        a = faces[f, 0] + base
+        b = faces[f, 1] + base
+        c = faces[f, 2] + base
+        if a == i or a == j or b == i or b == j or c == i or c == j:
             continue
         if _segment_crosses_triangle(p, q, x[a], x[b], x[c]) != 0:
-            crossing[e] = 1
+            crossing[tid] = 1
             wp.atomic_add(per_instance, instance, 1)
             return
 
@@ -107,22 +112,24 @@ class CrossingCounter:
         self.device = device
         self.num_vertices, self.instances = int(num_vertices), int(instances)
         self.edges = unique_edges(f).astype(np.int32)                                   # (E, 2) of one copy
-        offsets = (np.arange(self.instances) * self.num_vertices).astype(np.int32)[:, None, None]
-        all_faces = (f.astype(np.int32)[None] + offsets).reshape(-1, 3)
-        n = self.instances * self.num_vertices
-        self._faces = wp.array(all_faces, dtype=wp.int32, device=device)
-        self._edges = wp.array((self.edges[None] + offsets).reshape(-1, 2), dtype=wp.int32, device=device)
+        V, n = self.num_vertices, self.instances * self.num_vertices
+        self._faces = wp.array(f.astype(np.int32), dtype=wp.int32, device=device)
+        self._edges = wp.array(self.edges, dtype=wp.int32, device=device)
         self._x = wp.zeros(n, dtype=wp.vec3d, device=device)
         self._points = wp.zeros(n, dtype=wp.vec3, device=device)
-        self._mesh = wp.Mesh(points=self._points, indices=self._faces.flatten())
-        self._out = wp.zeros(self._edges.shape[0], dtype=wp.int32, device=device)
+        indices = self._faces.flatten()
+        self._meshes = [wp.Mesh(points=self._points[k * V:(k + 1) * V], indices=indices)
+                        for k in range(self.instances)]
+        self._mesh_ids = wp.array([m.id for m in self._meshes], dtype=wp.uint64, device=device)
+        self._out = wp.zeros(self.instances * len(self.edges), dtype=wp.int32, device=device)
         self._per_instance = wp.zeros(self.instances, dtype=wp.int32, device=device)
 
     def _launch(self) -> None:
-        self._mesh.refit()
+        for mesh in self._meshes:
+            mesh.refit()
         self._per_instance.zero_()
-        wp.launch(_crossing_kernel, dim=self._edges.shape[0], device=self.device,
-                  inputs=[self._mesh.id, self._x, self._faces, self._edges, BOX_PAD, self.num_vertices],
+        wp.launch(_crossing_kernel, dim=len(self._out), device=self.device,
+                  inputs=[self._mesh_ids, self._x, self._faces, self._edges, BOX_PAD, self.num_vertices],
                   outputs=[self._out, self._per_instance])
 
     def count_points(self, points: wp.array) -> np.ndarray:
