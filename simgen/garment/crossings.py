@@ -102,7 +102,7 @@ class CrossingCounter:
     simulation holds them; each copy is tested against itself only).
 
     faces (F, 3) int: the garment's triangles; num_vertices V of one copy; device: Warp device
-    ("cpu", "cuda:0", ...). The BVH is built once and refit for every frame.
+    ("cpu", "cuda:0", ...). The BVHs are built on the first frame counted and refit for every later one.
     """
 
     def __init__(self, faces, num_vertices: int, device: str = "cpu", instances: int = 1) -> None:
@@ -112,19 +112,24 @@ class CrossingCounter:
         self.device = device
         self.num_vertices, self.instances = int(num_vertices), int(instances)
         self.edges = unique_edges(f).astype(np.int32)                                   # (E, 2) of one copy
-        V, n = self.num_vertices, self.instances * self.num_vertices
+        n = self.instances * self.num_vertices
         self._faces = wp.array(f.astype(np.int32), dtype=wp.int32, device=device)
         self._edges = wp.array(self.edges, dtype=wp.int32, device=device)
         self._x = wp.zeros(n, dtype=wp.vec3d, device=device)
         self._points = wp.zeros(n, dtype=wp.vec3, device=device)
-        indices = self._faces.flatten()
-        self._meshes = [wp.Mesh(points=self._points[k * V:(k + 1) * V], indices=indices)
-                        for k in range(self.instances)]
-        self._mesh_ids = wp.array([m.id for m in self._meshes], dtype=wp.uint64, device=device)
+        self._meshes: list = []      # built on the first frame's positions (module doc), then refit
+        self._mesh_ids = None
         self._out = wp.zeros(self.instances * len(self.edges), dtype=wp.int32, device=device)
         self._per_instance = wp.zeros(self.instances, dtype=wp.int32, device=device)
 
     def _launch(self) -> None:
+        if not self._meshes:
+            # A BVH is built on the first frame's positions: one built on placeholder points and
+            # only refit would keep a tree that groups unrelated triangles (every query then walks it all).
+            V, indices = self.num_vertices, self._faces.flatten()
+            self._meshes = [wp.Mesh(points=self._points[k * V:(k + 1) * V], indices=indices)
+                            for k in range(self.instances)]
+            self._mesh_ids = wp.array([m.id for m in self._meshes], dtype=wp.uint64, device=self.device)
         for mesh in self._meshes:
             mesh.refit()
         self._per_instance.zero_()
