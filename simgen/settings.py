@@ -27,7 +27,7 @@ import math
 import numbers
 import types
 import typing
-from dataclasses import MISSING, dataclass, field, fields, is_dataclass
+from dataclasses import MISSING, dataclass, field, fields, is_dataclass, replace
 
 from simgen.errors import InputError
 
@@ -201,9 +201,10 @@ def validate(instance, where: str) -> None:
 
 
 def check_value(cls, name: str, value, label: str):
-    """Check one value against the declaration of ``cls.name`` (e.g. a command-line flag, with the
-    flag as ``label``); returns it normalised."""
-    return settings_of(cls)[name].check(value, label)
+    """Check one given value against the declaration of ``cls.name`` (e.g. a command-line flag, with
+    the flag as ``label``); returns it normalised. A given value is never None, so the message does
+    not offer None."""
+    return replace(settings_of(cls)[name], optional=False).check(value, label)
 
 
 def documented(cls):

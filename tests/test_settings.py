@@ -192,7 +192,7 @@ def test_the_simulate_flags_take_the_solver_bounds():
     from simgen.settings import check_value
     from simgen.sim import SolverConfig
 
-    with pytest.raises(InputError, match="--strain-limit must be a finite number > 0 or None, got -1.0"):
+    with pytest.raises(InputError, match=r"--strain-limit must be a finite number > 0, got -1.0$"):
         check_value(SolverConfig, "strain_limit", -1.0, "--strain-limit")
     assert check_value(SolverConfig, "newton_iterations", 2, "--newton-iterations") == 2
 
