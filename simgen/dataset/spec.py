@@ -85,7 +85,7 @@ import json
 import math
 import re
 import tomllib
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 
 from simgen.errors import InputError
@@ -471,8 +471,8 @@ class _Reader:
             return list(values)
         if s.kind not in (bool, int, float, str):
             raise self.err(key, "cannot be set in a spec")
-        return self.get(key, s.default, s.kind, low=s.low, high=s.high, inclusive=s.inclusive, choices=s.choices,
-                        finite=s.finite)
+        # The declaration checks its own values (the same rule and message as the config's).
+        return replace(s, optional=False).check(self.table[key], f"spec {self.source}: field '{self.prefix}{key}'")
 
     def strings(self, key, default) -> tuple[str, ...]:
         if key not in self.table:
