@@ -89,25 +89,27 @@ def tube(n_around=12, n_along=8, radius=0.05, length=0.4):
     return v, np.array(f)
 
 
-def test_a_sleeve_squashed_flat_is_clean_and_one_pushed_through_itself_is_not():
-    v, f = tube()
-    flat = v.copy()
-    flat[:, 1] *= 0.01                        # squashed to 1 mm: the two walls lie on each other
-    assert int(count_crossing_edges(flat, f)[0]) == 0 == brute_force(flat, f)
-    tangled = flat.copy()
-    top = (tangled[:, 1] > 1e-6) & (np.abs(tangled[:, 0] - 0.2) < 0.06)
-    tangled[top, 1] -= 0.002                  # a patch of the upper wall pushed through the lower one
-    n = int(count_crossing_edges(tangled, f)[0])
-    assert n > 0 and n == brute_force(tangled, f)
-
-
-def test_counter_counts_every_frame_and_refuses_bad_input():
+def sleeves():
+    """A tube (a sleeve) as built, squashed flat to 1 mm (its two walls lie on each other: clean),
+    and squashed with a patch of the upper wall pushed 2 mm through the lower one (tangled)."""
     v, f = tube()
     flat = v.copy()
     flat[:, 1] *= 0.01
     tangled = flat.copy()
     top = (tangled[:, 1] > 1e-6) & (np.abs(tangled[:, 0] - 0.2) < 0.06)
     tangled[top, 1] -= 0.002
+    return v, flat, tangled, f
+
+
+def test_a_sleeve_squashed_flat_is_clean_and_one_pushed_through_itself_is_not():
+    v, flat, tangled, f = sleeves()
+    assert int(count_crossing_edges(flat, f)[0]) == 0 == brute_force(flat, f)
+    n = int(count_crossing_edges(tangled, f)[0])
+    assert n > 0 and n == brute_force(tangled, f)
+
+
+def test_counter_counts_every_frame_and_refuses_bad_input():
+    v, flat, tangled, f = sleeves()
     counter = CrossingCounter(f, len(v))
     counts = counter.count(np.stack([v, flat, tangled, flat]))
     assert counts[0] == counts[1] == counts[3] == 0 and counts[2] > 0
@@ -126,12 +128,7 @@ def test_dataset_check_lists_crossings_and_warns_past_the_limits():
 
     from simgen.dataset.check import CheckReport, _check_sequence_crossings
 
-    v, f = tube()
-    flat = v.copy()
-    flat[:, 1] *= 0.01
-    tangled = flat.copy()
-    top = (tangled[:, 1] > 1e-6) & (np.abs(tangled[:, 0] - 0.2) < 0.06)
-    tangled[top, 1] -= 0.002
+    v, flat, tangled, f = sleeves()
     ctx = SimpleNamespace(crossings=CrossingCounter(f, len(v)))
     clean, one = [flat] * 400, [flat] * 399 + [tangled]           # one frame of 400: 0.25%, no warning
     three = [flat] * 1000 + [tangled] * 3 + [flat] * 997           # 3 in a row, 0.15%
@@ -152,12 +149,7 @@ def test_copies_side_by_side_are_counted_each_against_itself():
     each copy counts only its own crossings (the copies pass through each other everywhere)."""
     import warp as wp
 
-    v, f = tube()
-    flat = v.copy()
-    flat[:, 1] *= 0.01
-    tangled = flat.copy()
-    top = (tangled[:, 1] > 1e-6) & (np.abs(tangled[:, 0] - 0.2) < 0.06)
-    tangled[top, 1] -= 0.002
+    v, flat, tangled, f = sleeves()
     shifted = flat + [0.1, 0.0, 0.0]                  # overlaps the others, crossing them, not itself
     counter = CrossingCounter(f, len(v), instances=3)
     points = wp.array(np.vstack([flat, tangled, shifted]).astype(np.float32), dtype=wp.vec3)
