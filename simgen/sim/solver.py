@@ -53,6 +53,7 @@ from simgen.sim.energies import (ContactFrame, SelfContactSet, eval_bending, eva
                                  eval_gravity, eval_inertia, eval_membrane, eval_self_contact, load_kernels,
                                  project_floor, update_contact_frame)
 from simgen.sim.warp_toolkit import module_name, scalar_types
+from simgen.sim.impact_filter import ImpactFilter, impact_kernels
 from simgen.sim.linear import BlockJacobiPCG
 from simgen.sim.model import ClothModel, ClothState
 from simgen.sim.config import SolverConfig
@@ -233,6 +234,9 @@ class ImplicitSolver:
         # The contact's body part rule, decided per vertex at each step's start and held through it.
         self.part_choice = wp.zeros(m.num_vertices, dtype=wp.int32, device=dev)
         self.self_contact = SelfContactSet(m, cfg.self_contact) if cfg.self_contact is not None else None
+        self.impact_filter = (ImpactFilter(m, cfg.self_contact.impact_rounds) if cfg.self_contact is not None
+                              else None)
+        self._substep_start = m.new_gradient() if self.impact_filter is not None else None
         self.strain_limiter = (StrainLimiter(m, cfg.strain_limit, cfg.strain_limit_iterations)
                                if cfg.strain_limit is not None else None)
         self._frame_valid = False
@@ -264,6 +268,9 @@ class ImplicitSolver:
         if self.strain_limiter is not None:
             strain_limit_kernels(self.model.scalar)
             wp.load_module(module_name("simgen.sim.strain_limit", self.model.scalar), device=dev)
+        if self.impact_filter is not None:
+            impact_kernels(self.model.scalar)
+            wp.load_module(module_name("simgen.sim.impact_filter", self.model.scalar), device=dev)
 
     @property
     def stats(self) -> dict:
@@ -357,6 +364,8 @@ class ImplicitSolver:
         if n < 1:
             raise InputError(f"substeps must be an integer >= 1, got {substeps!r}")
         for s in range(n):
+            if self.impact_filter is not None:
+                wp.copy(self._substep_start, work.positions)
             if deferred_guard:
                 self._deferred_step(work, body, dt / n, s / n, (s + 1) / n)
             else:
@@ -377,6 +386,9 @@ class ImplicitSolver:
                               inputs=[self._depth, self._depth_max])
             if cfg.floor is not None and cfg.project:
                 project_floor(self.model, work, cfg.floor, cfg.projection_offset)
+            if self.impact_filter is not None:
+                # Last: whatever moved the cloth in this substep (solve, limiter, projections).
+                self.impact_filter.apply(self._substep_start, work)
             if projecting:
                 self._lag_contacts(work, body)
         state_out.assign(work)
