@@ -53,6 +53,10 @@ lambda = E nu / (1 - nu^2), mu = E / (2 (1 + nu))):
   (``soft_contact_gap``); quadratic penalty with soft_contact_ke = shape ke = 1e3 N/m, damping
   kd = 0.1 N s/m (the pair of Newton's cloth_twist example), Coulomb friction 0.3 (ours).
 
+The scene (:func:`build_newton_peer`, :class:`NewtonPeer`) and the material mapping are shared with
+scripts/peer_drape.py, which drapes one instance on a body that moves from the rest pose to a
+standing pose and moves the body mesh between substeps.
+
 Run standalone (prints one JSON line per run):
 
     python scripts/bench_newton_peer.py --solver vbd --instances 1 16 --frames 20 --device cuda:0 \\
@@ -67,6 +71,7 @@ import json
 import platform
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import newton
@@ -191,6 +196,119 @@ def _used_memory_mb(device) -> float | None:
     return (device.total_memory - device.free_memory) / 2**20 if device.is_cuda else None
 
 
+def material_kwargs(material) -> dict:
+    """The material keywords of :func:`build_newton_peer` / :func:`run_newton_peer` for one of our
+    :class:`simgen.materials.Material` (area density [kg/m^2], Young's modulus [Pa], Poisson ratio,
+    thickness [m], bending stiffness [N m]); damping and friction are not mapped (see the module doc)."""
+    return {"area_density": material.area_density, "youngs_modulus": material.youngs_modulus,
+            "poisson": material.poisson_ratio, "thickness": material.thickness,
+            "bend_stiffness": material.bending_stiffness}
+
+
+@dataclass
+class NewtonPeer:
+    """One Newton cloth scene, built and ready to step (:func:`build_newton_peer`).
+
+    solver: "vbd" or "style3d"; model: the finalized ``newton.Model``; sim: the Newton solver;
+    pipeline: the ``newton.CollisionPipeline``; contacts: the contact buffer passed to every step
+    (None for SolverVBD, which detects into its own); states: the two ``newton.State`` buffers
+    (a frame's result ends in ``states[0]``); control: ``model.control()``; substeps: solver steps
+    per frame; dt [s]: one step; settings: the solver's JSON settings; material: the mapped
+    coefficients (:func:`material_mapping`).
+    """
+
+    solver: str
+    model: object
+    sim: object
+    pipeline: object
+    contacts: object
+    states: list
+    control: object
+    substeps: int
+    dt: float
+    settings: dict
+    material: dict
+
+    def frame(self, before_substep=None) -> None:
+        """One frame of ``substeps`` solver steps; the result ends in ``states[0]``.
+
+        before_substep: optional callable(i) run before substep i's collision detection (e.g. to
+        move a collider); None in the timed benchmark (the frame is captured as one CUDA graph).
+        """
+        for i in range(self.substeps):
+            state_in, state_out = self.states[i % 2], self.states[(i + 1) % 2]
+            if before_substep is not None:
+                before_substep(i)
+            state_in.clear_forces()
+            if self.contacts is not None:
+                self.pipeline.collide(state_in, self.contacts)
+            self.sim.step(state_in, state_out, self.control, self.contacts, self.dt)
+        if self.substeps % 2:
+            self.states[0].assign(self.states[1])
+
+    def positions(self) -> np.ndarray:
+        """The cloth positions [m] after the last frame, (instances * V, 3) float32 on the host."""
+        return self.states[0].particle_q.numpy()
+
+
+def build_newton_peer(solver: str, garment_vertices: np.ndarray, garment_faces: np.ndarray,
+                      body_vertices: np.ndarray, body_faces: np.ndarray, *, instances: int = 1,
+                      substeps: int = 10, fps: float = 30.0, iterations: int = 10, device=None,
+                      area_density: float = 0.2, youngs_modulus: float = 0.7e5, poisson: float = 0.485,
+                      thickness: float = 4.7e-4, bend_stiffness: float = 3.96e-5) -> NewtonPeer:
+    """Build ``instances`` worlds of (cloth + static body mesh shape) and the Newton solver.
+
+    Arguments as :func:`run_newton_peer` (garment and body vertices [m], y up; the body mesh starts
+    at ``body_vertices``). Allocates on ``device`` (Warp's preferred one if None).
+    """
+    if solver not in SOLVERS:
+        raise ValueError(f"solver must be one of {SOLVERS}, got {solver!r}")
+    dev = wp.get_device(device)
+    material = material_mapping(area_density, youngs_modulus, poisson, thickness, bend_stiffness)
+    with wp.ScopedDevice(dev):
+        body_mesh = newton.Mesh(np.asarray(body_vertices, np.float32), np.asarray(body_faces, np.int32).reshape(-1),
+                                compute_inertia=False)
+        world = _world_builder(solver, garment_vertices, garment_faces, body_mesh, material, area_density,
+                               bend_stiffness)
+        scene = newton.ModelBuilder(up_axis=newton.Axis.Y, gravity=GRAVITY)
+        if solver == "style3d":
+            SolverStyle3D.register_custom_attributes(scene)
+        scene.replicate(world, instances)
+        model = scene.finalize(device=dev)
+        model.soft_contact_ke = CONTACT_KE
+        model.soft_contact_kd = CONTACT_KD
+        model.soft_contact_mu = FRICTION
+
+        pipeline = newton.CollisionPipeline(model, soft_contact_gap=CONTACT_GAP)
+        if solver == "vbd":
+            sim = SolverVBD(model, iterations=iterations, collision_pipeline=pipeline)
+            contacts = None  # the solver detects into its own buffer at the start of every step
+            settings = {"newton_solver": "SolverVBD", "iterations": iterations, "collide": "owned by the "
+                        "solver, once per substep (PRE_INIT)"}
+        else:
+            config = SolverStyle3D.Config(iterations=iterations)
+            with contextlib.redirect_stdout(sys.stderr):  # its precompute prints a timer line
+                sim = SolverStyle3D(model, config=config)
+            # No self-contact, as ours: zero the stiffness of its built-in cloth-cloth contacts (the body
+            # contacts it evaluates from ``contacts`` stay on).
+            sim.collision.stiff_vf = sim.collision.stiff_ee = sim.collision.stiff_ef = 0.0
+            contacts = pipeline.contacts()
+            settings = {"newton_solver": "SolverStyle3D", "iterations": iterations,
+                        "linear_iterations": config.linear_iterations,
+                        "collide": "CollisionPipeline.collide before every substep"}
+        states = [model.state(), model.state()]
+        control = model.control()
+    return NewtonPeer(solver=solver, model=model, sim=sim, pipeline=pipeline, contacts=contacts, states=states,
+                      control=control, substeps=substeps, dt=1.0 / (fps * substeps), settings=settings,
+                      material=material)
+
+
+def contact_settings() -> dict:
+    """The body-contact settings both peers use (JSON)."""
+    return {"particle_radius_m": CONTACT_RADIUS, "body_shape_margin_m": 0.0, "soft_contact_gap_m": CONTACT_GAP,
+            "ke_n_m": CONTACT_KE, "kd_n_s_m": CONTACT_KD, "friction": FRICTION}
+
+
 def run_newton_peer(solver: str, garment_vertices: np.ndarray, garment_faces: np.ndarray,
                     body_vertices: np.ndarray, body_faces: np.ndarray, *, instances: int, frames: int,
                     substeps: int = 10, fps: float = 30.0, iterations: int = 10, device: str | None = None,
@@ -219,68 +337,26 @@ def run_newton_peer(solver: str, garment_vertices: np.ndarray, garment_faces: np
     if solver not in SOLVERS:
         raise ValueError(f"solver must be one of {SOLVERS}, got {solver!r}")
     dev = wp.get_device(device)
-    dt = 1.0 / (fps * substeps)
-    material = material_mapping(area_density, youngs_modulus, poisson, thickness, bend_stiffness)
     num_vertices = len(garment_vertices)
 
     with wp.ScopedDevice(dev):
         memory_before = _used_memory_mb(dev)
         t_build = time.perf_counter()
-        body_mesh = newton.Mesh(np.asarray(body_vertices, np.float32), np.asarray(body_faces, np.int32).reshape(-1),
-                                compute_inertia=False)
-        world = _world_builder(solver, garment_vertices, garment_faces, body_mesh, material, area_density,
-                               bend_stiffness)
-        scene = newton.ModelBuilder(up_axis=newton.Axis.Y, gravity=GRAVITY)
-        if solver == "style3d":
-            SolverStyle3D.register_custom_attributes(scene)
-        scene.replicate(world, instances)
-        model = scene.finalize(device=dev)
-        model.soft_contact_ke = CONTACT_KE
-        model.soft_contact_kd = CONTACT_KD
-        model.soft_contact_mu = FRICTION
-
-        pipeline = newton.CollisionPipeline(model, soft_contact_gap=CONTACT_GAP)
-        if solver == "vbd":
-            sim = SolverVBD(model, iterations=iterations, collision_pipeline=pipeline)
-            contacts = None  # the solver detects into its own buffer at the start of every step
-            solver_settings = {"newton_solver": "SolverVBD", "iterations": iterations, "collide": "owned by the "
-                               "solver, once per substep (PRE_INIT)"}
-        else:
-            config = SolverStyle3D.Config(iterations=iterations)
-            with contextlib.redirect_stdout(sys.stderr):  # its precompute prints a timer line
-                sim = SolverStyle3D(model, config=config)
-            # No self-contact, as ours: zero the stiffness of its built-in cloth-cloth contacts (the body
-            # contacts it evaluates from ``contacts`` stay on).
-            sim.collision.stiff_vf = sim.collision.stiff_ee = sim.collision.stiff_ef = 0.0
-            contacts = pipeline.contacts()
-            solver_settings = {"newton_solver": "SolverStyle3D", "iterations": iterations,
-                               "linear_iterations": config.linear_iterations,
-                               "collide": "CollisionPipeline.collide before every substep"}
-        states = [model.state(), model.state()]
-        control = model.control()
-
-        def simulate():
-            """One frame; the result ends in states[0] (the buffers a captured graph reads and writes)."""
-            for i in range(substeps):
-                state_in, state_out = states[i % 2], states[(i + 1) % 2]
-                state_in.clear_forces()
-                if contacts is not None:
-                    pipeline.collide(state_in, contacts)
-                sim.step(state_in, state_out, control, contacts, dt)
-            if substeps % 2:
-                states[0].assign(states[1])
-
+        peer = build_newton_peer(solver, garment_vertices, garment_faces, body_vertices, body_faces,
+                                 instances=instances, substeps=substeps, fps=fps, iterations=iterations, device=dev,
+                                 area_density=area_density, youngs_modulus=youngs_modulus, poisson=poisson,
+                                 thickness=thickness, bend_stiffness=bend_stiffness)
         graph = None
         if dev.is_cuda:
             with wp.ScopedCapture(device=dev) as capture:
-                simulate()
+                peer.frame()
             graph = capture.graph
 
         def frame():
             if graph is not None:
                 wp.capture_launch(graph)
             else:
-                simulate()
+                peer.frame()
 
         wp.synchronize_device(dev)
         build_s = time.perf_counter() - t_build
@@ -295,7 +371,7 @@ def run_newton_peer(solver: str, garment_vertices: np.ndarray, garment_faces: np
             if f >= warmup_frames:
                 times.append(time.perf_counter() - t0)
 
-        x = states[0].particle_q.numpy().reshape(instances, num_vertices, 3)
+        x = peer.positions().reshape(instances, num_vertices, 3)
         finite = bool(np.all(np.isfinite(x)))
         depth = inside_depth(body_vertices, body_faces, x.reshape(-1, 3), dev).reshape(instances, num_vertices)
 
@@ -304,12 +380,12 @@ def run_newton_peer(solver: str, garment_vertices: np.ndarray, garment_faces: np
     extent = y.max(axis=1) - y.min(axis=1)
     median = float(np.median(times)) * 1e3
     row = {
-        "peer": f"newton-{solver}", "solver": solver, **solver_settings,
+        "peer": f"newton-{solver}", "solver": solver, **peer.settings,
         "newton": newton.__version__, "warp": wp.__version__,
         "device": dev.name if dev.is_cuda else platform.processor() or "cpu", "device_alias": str(dev),
         "instances": instances, "worlds": "ModelBuilder.replicate: one world per instance, no cross-world contact",
         "vertices_per_instance": num_vertices, "triangles_per_instance": len(garment_faces),
-        "frames": frames, "warmup_frames": warmup_frames, "substeps": substeps, "fps": fps, "dt_s": dt,
+        "frames": frames, "warmup_frames": warmup_frames, "substeps": substeps, "fps": fps, "dt_s": peer.dt,
         "cuda_graph": graph is not None, "graph_includes_collide": graph is not None,
         "self_contact": False,
         "ms_per_frame_median": median, "ms_per_frame_mean": float(np.mean(times)) * 1e3,
@@ -323,10 +399,8 @@ def run_newton_peer(solver: str, garment_vertices: np.ndarray, garment_faces: np
         "inside_count": int((depth > 0.0).sum()),
         "inside_count_max_per_instance": int((depth > 0.0).sum(axis=1).max()),
         "max_inside_depth_mm": 1e3 * float(depth.max()),
-        "material": material,
-        "contact": {"particle_radius_m": CONTACT_RADIUS, "body_shape_margin_m": 0.0,
-                    "soft_contact_gap_m": CONTACT_GAP, "ke_n_m": CONTACT_KE, "kd_n_s_m": CONTACT_KD,
-                    "friction": FRICTION, "body": "static mesh shape (body=-1) in every world"},
+        "material": peer.material,
+        "contact": {**contact_settings(), "body": "static mesh shape (body=-1) in every world"},
     }
     if memory_before is not None:
         row["gpu_memory_mb"] = memory_built - memory_before

@@ -69,16 +69,42 @@ def garment_parts(garment) -> tuple[np.ndarray, np.ndarray]:
     return hem, sleeve
 
 
-def measure(result, hem: np.ndarray, sleeve: np.ndarray, device: str) -> dict:
-    """Per frame: hem_cling (share) and sleeve_gap [m], from the recorded posed body."""
+def frame_metrics(x: np.ndarray, body_vertices: np.ndarray, body_faces: np.ndarray, hem: np.ndarray,
+                  sleeve: np.ndarray, device: str) -> dict:
+    """One frame's fit: the garment x [m] (V, 3) against the posed body [m] (Vb, 3), faces (Fb, 3).
+
+    Returns hem_cling (share of the hem vertices closer than CLING_DISTANCE to the body surface),
+    sleeve_gap [m] (the largest distance of a sleeve vertex from it; 0 without sleeves),
+    hem_mean_distance [m] (mean distance of the hem vertices), inside_share (share of all vertices
+    inside the body, winding-number sign) and y_min [m] (the lowest vertex). hem, sleeve: bool (V,).
+    """
     from simgen.body.surface import SurfaceMesh
 
+    sd = SurfaceMesh(body_vertices, body_faces, device=device).project(x).signed_distance
+    d = np.abs(sd)
+    return {"hem_cling": float(np.mean(d[hem] < CLING_DISTANCE)),
+            "sleeve_gap": float(d[sleeve].max()) if sleeve.any() else 0.0,
+            "hem_mean_distance": float(d[hem].mean()), "inside_share": float(np.mean(sd < 0.0)),
+            "y_min": float(np.min(np.asarray(x)[:, 1]))}
+
+
+def measure(result, hem: np.ndarray, sleeve: np.ndarray, device: str) -> dict:
+    """Per frame: hem_cling (share) and sleeve_gap [m], from the recorded posed body."""
     cling, gap = [], []
     for x, b in zip(result.positions, result.body_vertices):
-        d = np.abs(SurfaceMesh(b, result.body_faces, device=device).project(x).signed_distance)
-        cling.append(float(np.mean(d[hem] < CLING_DISTANCE)))
-        gap.append(float(d[sleeve].max()) if sleeve.any() else 0.0)
+        m = frame_metrics(x, b, result.body_faces, hem, sleeve, device)
+        cling.append(m["hem_cling"])
+        gap.append(m["sleeve_gap"])
     return {"hem_cling": cling, "sleeve_gap": gap}
+
+
+def variant_config(name: str, **settings):
+    """The SimulationConfig of variant ``name`` (:func:`variants`): ``settings`` (other SimulationConfig
+    fields) with the variant's own overrides on top."""
+    from simgen.sim import SimulationConfig, SolverConfig
+
+    sim_over, solver_over = variants()[name]
+    return SimulationConfig(solver=replace(SolverConfig(), **solver_over), **{**settings, **sim_over})
 
 
 def run(args) -> list[dict]:
@@ -87,7 +113,7 @@ def run(args) -> list[dict]:
     from simgen.body import load as load_body
     from simgen.garment import load_garment
     from simgen.motion import load_motion
-    from simgen.sim import SimulationConfig, SimulationJob, SolverConfig, simulate_batch
+    from simgen.sim import SimulationJob, simulate_batch
 
     wp.config.quiet = True
     body = load_body("open")
@@ -97,9 +123,7 @@ def run(args) -> list[dict]:
     shapes = {"zero": None, "b0p2": [2.0], "b0m2": [-2.0]}
     rows = []
     for name in args.variants:
-        sim_over, solver_over = variants()[name]
-        cfg = SimulationConfig(record_body=True, device=args.device, solver=replace(SolverConfig(), **solver_over),
-                               **sim_over)
+        cfg = variant_config(name, record_body=True, device=args.device)
         jobs = [SimulationJob(clip, betas=b, frames=args.frames, key=k) for k, b in shapes.items()]
         for k, res in zip(shapes, simulate_batch(garment, body, jobs, cfg)):
             m = measure(res, hem, sleeve, args.device)

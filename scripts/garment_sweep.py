@@ -63,7 +63,9 @@ def main(argv=None) -> int:
                "num_problems": len(c.problems)}
         row.update({k: v for k, v in c.to_dict().items()
                     if k in ("frames", "frames_checked_body", "max_depth", "max_strain", "max_strain_regular",
-                             "pinched_strain_frames", "min_body_share", "max_support_drop", "min_height")})
+                             "pinched_strain_frames", "min_body_share", "max_support_drop", "min_height",
+                              "crossing_frames", "max_crossing_edges")})
+        row["sequences_with_crossings"] = len(c.to_dict().get("crossings", {}))
         result["garments"].append(row)
         print(json.dumps(row), flush=True)
     if a.pack:
