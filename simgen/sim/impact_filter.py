@@ -21,8 +21,9 @@ time of impact of Li et al. (2021)'s additive CCD:
    paths, so detection repeats ``rounds`` times; in the last round every vertex of a pair still
    impacting stays at x0. A start that crosses nothing then ends crossing nothing.
 
-Costs one refit of each BVH and one pass over vertices and edges per round; the rounds stop
-early on the host only when asked (:meth:`ImpactFilter.apply` is graph-capturable).
+A round costs one refit of each BVH and one pass over vertices and edges; the next round runs
+only if this one found an impact (a ``wp.capture_while`` loop on a device flag, so a substep
+without impacts costs one round, also inside a CUDA graph).
 """
 
 import functools
@@ -146,7 +147,9 @@ def impact_kernels(scalar) -> SimpleNamespace:
         return t
 
     @wp.func
-    def record(scale: wp.array(dtype=scalar), freeze: int, toi: scalar, i0: int, i1: int, i2: int, i3: int):
+    def record(scale: wp.array(dtype=scalar), freeze: int, toi: scalar, i0: int, i1: int, i2: int, i3: int,
+               pending: wp.array(dtype=wp.int32)):
+        pending[0] = 1
         c = toi
         if freeze != 0:
             c = zero
@@ -179,8 +182,10 @@ def impact_kernels(scalar) -> SimpleNamespace:
     @wp.kernel(enable_backward=False, module=mod)
     def vertex_triangle(x0: wp.array(dtype=vec3), x1: wp.array(dtype=vec3), triangles: wp.array(dtype=wp.int32, ndim=2),
                         vertex_instance: wp.array(dtype=wp.int32), offsets: wp.array(dtype=wp.vec3), bvh: wp.uint64,
-                        pad: float, freeze: int, scale: wp.array(dtype=scalar), impacts: wp.array(dtype=wp.int32)):
+                        pad: float, round_index: wp.array(dtype=wp.int32), rounds: int, scale: wp.array(dtype=scalar),
+                        impacts: wp.array(dtype=wp.int32), pending: wp.array(dtype=wp.int32)):
         i = wp.tid()
+        freeze = int(round_index[0] >= rounds - 1)
         inst = vertex_instance[i]
         lo, hi = swept_box(x0[i], x1[i], offsets[inst], pad)
         query = wp.bvh_query_aabb(bvh, lo, hi)
@@ -195,13 +200,15 @@ def impact_kernels(scalar) -> SimpleNamespace:
                                  x1[ib] - x0[ib], x1[ic] - x0[ic])
             if toi < one:
                 wp.atomic_add(impacts, inst, 1)
-                record(scale, freeze, toi, i, ia, ib, ic)
+                record(scale, freeze, toi, i, ia, ib, ic, pending)
 
     @wp.kernel(enable_backward=False, module=mod)
     def edge_edge(x0: wp.array(dtype=vec3), x1: wp.array(dtype=vec3), edges: wp.array(dtype=wp.int32, ndim=2),
                   vertex_instance: wp.array(dtype=wp.int32), offsets: wp.array(dtype=wp.vec3), bvh: wp.uint64,
-                  pad: float, freeze: int, scale: wp.array(dtype=scalar), impacts: wp.array(dtype=wp.int32)):
+                  pad: float, round_index: wp.array(dtype=wp.int32), rounds: int, scale: wp.array(dtype=scalar),
+                  impacts: wp.array(dtype=wp.int32), pending: wp.array(dtype=wp.int32)):
         e = wp.tid()
+        freeze = int(round_index[0] >= rounds - 1)
         a = edges[e, 0]
         b = edges[e, 1]
         inst = vertex_instance[a]
@@ -220,7 +227,7 @@ def impact_kernels(scalar) -> SimpleNamespace:
                                  x1[c] - x0[c], x1[d] - x0[d])
             if toi < one:
                 wp.atomic_add(impacts, inst, 1)
-                record(scale, freeze, toi, a, b, c, d)
+                record(scale, freeze, toi, a, b, c, d, pending)
 
     @wp.kernel(enable_backward=False, module=mod)
     def apply(x0: wp.array(dtype=vec3), scale: wp.array(dtype=scalar), x: wp.array(dtype=vec3),
@@ -232,11 +239,26 @@ def impact_kernels(scalar) -> SimpleNamespace:
             v[i] = c * v[i]
 
     @wp.kernel(enable_backward=False, module=mod)
-    def reset(scale: wp.array(dtype=scalar)):
-        scale[wp.tid()] = one
+    def reset(scale: wp.array(dtype=scalar), pending: wp.array(dtype=wp.int32)):
+        i = wp.tid()
+        scale[i] = one
+        if i == 0:
+            pending[0] = 0
+
+    @wp.kernel(enable_backward=False, module=mod)
+    def start(round_index: wp.array(dtype=wp.int32), pending: wp.array(dtype=wp.int32)):
+        round_index[0] = 0
+        pending[0] = 1
+
+    @wp.kernel(enable_backward=False, module=mod)
+    def next_round(round_index: wp.array(dtype=wp.int32), rounds: int, pending: wp.array(dtype=wp.int32)):
+        # Another round only after one that found an impact, and none after the freezing one.
+        round_index[0] = round_index[0] + 1
+        if round_index[0] >= rounds:
+            pending[0] = 0
 
     return SimpleNamespace(boxes=boxes, vertex_triangle=vertex_triangle, edge_edge=edge_edge, apply=apply,
-                           reset=reset, time_of_impact=time_of_impact)
+                           reset=reset, start=start, next_round=next_round, time_of_impact=time_of_impact)
 
 
 class ImpactFilter:
@@ -245,7 +267,7 @@ class ImpactFilter:
     rounds: detection passes per substep (>= 1; the last one keeps impacting vertices at x0).
     pad [m]: swept boxes are grown by it (float32 broad phase round-off).
     After :meth:`apply`, ``impacts`` (I,) int32 holds per instance the pairs found impacting in
-    the last round (0: the filter's first rounds resolved every impact by scaling alone).
+    the last round that ran (0: none were left, or none were found).
     """
 
     def __init__(self, model, rounds: int = 4, pad: float = 1.0e-4) -> None:
@@ -256,6 +278,8 @@ class ImpactFilter:
         self.offsets = wp.array(lattice_offsets(ni), dtype=wp.vec3, device=dev)
         self.scale = wp.ones(n, dtype=model.scalar, device=dev)
         self.impacts = wp.zeros(ni, dtype=wp.int32, device=dev)
+        self._round = wp.zeros(1, dtype=wp.int32, device=dev)
+        self._pending = wp.zeros(1, dtype=wp.int32, device=dev)
         self._bvhs = []
         rest = model.rest_positions
         for elements in (model.triangles, self.edges):
@@ -272,20 +296,25 @@ class ImpactFilter:
 
     def apply(self, x0, state) -> None:
         """Scale back ``state``'s motion from ``x0`` [m], (V,) vec3 (the substep's start, crossing
-        nothing) so that it crosses nothing either: positions and velocities in place."""
+        nothing) so that it crosses nothing either: positions and velocities in place. A round runs
+        only after one that found an impact (a conditional loop, inside a CUDA graph too)."""
+        k = impact_kernels(self.model.scalar)
+        wp.launch(k.start, dim=1, device=self.model.device, inputs=[self._round, self._pending])
+        wp.capture_while(self._pending, self._one_round, x0=x0, state=state)
+
+    def _one_round(self, x0, state) -> None:
         m, k = self.model, impact_kernels(self.model.scalar)
         x = state.positions
-        for r in range(self.rounds):
-            for elements, lo, hi, bvh in self._bvhs:
-                self._boxes(x0, x, elements, lo, hi)
-                bvh.refit()
-            wp.launch(k.reset, dim=m.num_vertices, device=m.device, inputs=[self.scale])
-            self.impacts.zero_()
-            freeze = int(r == self.rounds - 1)
-            (tris, *_, tri_bvh), (edges, *_, edge_bvh) = self._bvhs
-            wp.launch(k.vertex_triangle, dim=m.num_vertices, device=m.device, inputs=[
-                x0, x, tris, m.vertex_instance, self.offsets, tri_bvh.id, self.pad, freeze, self.scale, self.impacts])
-            wp.launch(k.edge_edge, dim=edges.shape[0], device=m.device, inputs=[
-                x0, x, edges, m.vertex_instance, self.offsets, edge_bvh.id, self.pad, freeze, self.scale,
-                self.impacts])
-            wp.launch(k.apply, dim=m.num_vertices, device=m.device, inputs=[x0, self.scale, x, state.velocities])
+        for elements, lo, hi, bvh in self._bvhs:
+            self._boxes(x0, x, elements, lo, hi)
+            bvh.refit()
+        wp.launch(k.reset, dim=m.num_vertices, device=m.device, inputs=[self.scale, self._pending])
+        self.impacts.zero_()
+        (tris, *_, tri_bvh), (edges, *_, edge_bvh) = self._bvhs
+        common = [m.vertex_instance, self.offsets]
+        tail = [self.pad, self._round, self.rounds, self.scale, self.impacts, self._pending]
+        wp.launch(k.vertex_triangle, dim=m.num_vertices, device=m.device,
+                  inputs=[x0, x, tris, *common, tri_bvh.id, *tail])
+        wp.launch(k.edge_edge, dim=edges.shape[0], device=m.device, inputs=[x0, x, edges, *common, edge_bvh.id, *tail])
+        wp.launch(k.apply, dim=m.num_vertices, device=m.device, inputs=[x0, self.scale, x, state.velocities])
+        wp.launch(k.next_round, dim=1, device=m.device, inputs=[self._round, self.rounds, self._pending])
