@@ -10,7 +10,7 @@ import warp as wp
 from simgen.garment.crossings import count_crossing_edges
 from simgen.params import SelfContactParams
 from simgen.sim import ClothModel, ClothModelBuilder, ImplicitSolver, SolverConfig
-from simgen.sim.impact_filter import impact_kernels, unique_edges
+from simgen.sim.impact_filter import ImpactFilter, impact_kernels
 from test_sim_energies import grid
 
 H = 1.0 / 300.0
@@ -63,10 +63,25 @@ def test_crossing_edges_impact_and_skew_ones_do_not():
     assert toi(1, shifted, down) == 1.0
 
 
-def test_unique_edges():
-    _, f = grid(3)
-    e = unique_edges(f)
-    assert len(e) == 16 and (e[:, 0] < e[:, 1]).all() and len({tuple(r) for r in e}) == 16
+def test_an_edge_through_an_edge_is_stopped():
+    # Triangle A is a sliver along x (its far corner 1 mm off the edge); B's lower edge, along z
+    # and 5 cm above, is carried 10 cm down through A's long edge. No vertex ever passes through a
+    # triangle (B's corners stay outside A, A's outside B): only the edge-edge test can stop it.
+    v = np.array([[-1.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.3, 0.0, -1.0e-3],
+                  [0.0, 0.05, 0.5], [0.0, 0.05, -0.5], [0.0, 0.3, 0.0]])
+    f = np.array([[0, 1, 2], [3, 4, 5]])
+    model = ClothModel.from_mesh(v, f, "cotton", device="cpu")
+    x1 = v.copy()
+    x1[3:, 1] -= 0.1
+    state = model.state()
+    state.positions.assign(x1.astype(np.float32))
+    filt = ImpactFilter(model)
+    x0 = wp.array(v.astype(np.float32), dtype=wp.vec3, device="cpu")
+    assert count_crossing_edges(x1, f)[0] > 0  # unfiltered, B's edge ends through A
+    filt.apply(x0, state)
+    x = state.positions.numpy()
+    assert count_crossing_edges(x, f)[0] == 0
+    assert 0.0 < x[3, 1] < 0.05 and np.allclose(x[:3], v[:3])  # B stopped above A's edge, A untouched
 
 
 def thrown_sheet(speed):

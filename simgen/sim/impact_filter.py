@@ -33,29 +33,14 @@ import numpy as np
 import warp as wp
 
 from simgen.body.surface_query import contact_funcs
-from simgen.sim.warp_toolkit import module_name, scalar_types
+from simgen.garment.mesh import unique_edges
+from simgen.sim.warp_toolkit import instance_offsets, module_name, scalar_types
 
-__all__ = ["ImpactFilter", "impact_kernels", "unique_edges", "LATTICE_SPACING"]
+__all__ = ["ImpactFilter", "impact_kernels"]
 
-LATTICE_SPACING = 50.0  # [m] instances sit on a lattice of this spacing in the broad phase
 GAP_KEPT = 0.1          # share of a pair's start distance (beyond the separation) that additive CCD never closes
 MIN_SEPARATION = 1.0e-4  # [m] no impact brings two primitives closer (float32 keeps ~1e-6 m at 10 m)
 MAX_CCD_ITERATIONS = 64  # additive CCD stops here and returns its (conservative) time so far
-
-
-def unique_edges(triangles: np.ndarray) -> np.ndarray:
-    """The mesh's undirected edges, (E, 2) int32, each once (smaller index first)."""
-    t = np.asarray(triangles, dtype=np.int64)
-    e = np.sort(np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]]), axis=1)
-    return np.unique(e, axis=0).astype(np.int32)
-
-
-def lattice_offsets(num_instances: int) -> np.ndarray:
-    """(I, 3) float32 broad-phase offsets [m]: instance i on an 8 x 8 x n lattice, so the boxes of
-    copies that overlap in space (same body, other shapes) do not meet, and coordinates stay
-    small enough (<= 400 m for 512 copies) for float32 boxes to keep sub-0.1 mm precision."""
-    i = np.arange(num_instances)
-    return (np.stack([i % 8, (i // 8) % 8, i // 64], axis=1) * LATTICE_SPACING).astype(np.float32)
 
 
 @functools.cache
@@ -274,8 +259,8 @@ class ImpactFilter:
         self.model, self.rounds, self.pad = model, int(rounds), float(pad)
         dev, n, ni = model.device, model.num_vertices, model.num_instances
         tris = np.asarray(model.host.triangles, dtype=np.int32)
-        self.edges = wp.array(unique_edges(tris), dtype=wp.int32, device=dev)
-        self.offsets = wp.array(lattice_offsets(ni), dtype=wp.vec3, device=dev)
+        self.edges = wp.array(unique_edges(tris).astype(np.int32), dtype=wp.int32, device=dev)
+        self.offsets = wp.array(instance_offsets(ni), dtype=wp.vec3, device=dev)
         self.scale = wp.ones(n, dtype=model.scalar, device=dev)
         self.impacts = wp.zeros(ni, dtype=wp.int32, device=dev)
         self._round = wp.zeros(1, dtype=wp.int32, device=dev)

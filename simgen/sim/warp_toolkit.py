@@ -18,6 +18,7 @@ directly. One atomic per element into one scalar per instance serialises on that
 import functools
 from types import SimpleNamespace
 
+import numpy as np
 import warp as wp
 
 
@@ -175,3 +176,16 @@ def resolve_outputs(energy, gradient, hessian):
     """
     values = getattr(hessian, "values", hessian)
     return int(energy is not None), int(gradient is not None), int(values is not None), energy, gradient, values
+
+
+BROAD_PHASE_SPACING = 50.0  # [m] instances sit this far apart on a lattice in the broad-phase BVHs
+
+
+def instance_offsets(num_instances: int) -> np.ndarray:
+    """(I, 3) float32 broad-phase offsets [m]: instance i on an 8 x 8 x n lattice of
+    BROAD_PHASE_SPACING, so the boxes of copies that overlap in space (same body, other shapes) do
+    not meet in a BVH shared by all instances, and coordinates stay small enough (<= 400 m for 512
+    copies) for float32 boxes to keep sub-0.1 mm precision. Kernels still compare instances."""
+    i = np.arange(num_instances)
+    return (np.stack([i % 8, (i // 8) % 8, i // 64], axis=1) * BROAD_PHASE_SPACING).astype(np.float32)
+

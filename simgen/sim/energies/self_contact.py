@@ -19,11 +19,12 @@ up to ``max_candidates`` triangles whose closest point lies within ``search_radi
 query). The energy then re-evaluates the exact distance to those triangles at every Newton
 iterate; a pair that only comes within the thickness during the substep is seen at the next one,
 so search_radius must exceed the thickness by the distance a vertex travels in one substep. One
-BVH serves all instances: each instance's vertices are shifted by ``INSTANCE_SPACING`` along x
-before the refit, so instances that overlap in space (same body, different shapes) never see each
-other. Triangles incident to the vertex are skipped; triangles of its 1-ring neighbours are not,
+BVH serves all instances: each instance's vertices are shifted to its point of a lattice
+(:func:`~simgen.sim.warp_toolkit.instance_offsets`) before the refit, and candidates of another
+instance are skipped, so instances that overlap in space (same body, different shapes) never see
+each other. Triangles incident to the vertex are skipped; triangles of its 1-ring neighbours are not,
 so the mesh's edges must be several thicknesses long (they are ~2 cm on the library garments).
-Vertex-triangle only: edge-edge crossings of two coarse triangles are not resolved.
+Vertex-triangle only; no step crosses an edge through an edge either, by :mod:`simgen.sim.impact_filter`.
 """
 
 import functools
@@ -33,13 +34,11 @@ import numpy as np
 import warp as wp
 
 from simgen.params import SelfContactParams  # declared with the other terms' parameters, Warp-free
-from simgen.sim.warp_toolkit import module_name, resolve_outputs, scalar_types
+from simgen.sim.warp_toolkit import instance_offsets, module_name, resolve_outputs, scalar_types
 from simgen.body.surface_query import contact_funcs
 
-__all__ = ["SelfContactParams", "SelfContactSet", "eval_self_contact", "self_contact_kernels", "INSTANCE_SPACING"]
+__all__ = ["SelfContactParams", "SelfContactSet", "eval_self_contact", "self_contact_kernels"]
 
-# [m] shift between instances in the broad-phase BVH; far beyond any garment's size.
-INSTANCE_SPACING = 100.0
 
 
 @functools.cache
@@ -53,19 +52,19 @@ def self_contact_kernels(scalar) -> SimpleNamespace:
     tiny = scalar(1.0e-12)
 
     @wp.kernel(enable_backward=False, module=mod)
-    def shift(x: wp.array(dtype=vec3), vertex_instance: wp.array(dtype=wp.int32), spacing: float,
+    def shift(x: wp.array(dtype=vec3), vertex_instance: wp.array(dtype=wp.int32), offsets: wp.array(dtype=wp.vec3),
               points: wp.array(dtype=wp.vec3)):
         i = wp.tid()
-        points[i] = wp.vec3(x[i]) + wp.vec3(spacing * float(vertex_instance[i]), 0.0, 0.0)
+        points[i] = wp.vec3(x[i]) + offsets[vertex_instance[i]]
 
     @wp.kernel(enable_backward=False, module=mod)
     def candidates(x: wp.array(dtype=vec3), vertex_instance: wp.array(dtype=wp.int32),
-                   triangles: wp.array(dtype=wp.int32, ndim=2), mesh: wp.uint64, spacing: float,
+                   triangles: wp.array(dtype=wp.int32, ndim=2), mesh: wp.uint64, offsets: wp.array(dtype=wp.vec3),
                    radius: scalar, max_candidates: int, candidate: wp.array(dtype=wp.int32, ndim=2),
                    count: wp.array(dtype=wp.int32)):
         i = wp.tid()
         p = x[i]
-        ps = wp.vec3(p) + wp.vec3(spacing * float(vertex_instance[i]), 0.0, 0.0)
+        ps = wp.vec3(p) + offsets[vertex_instance[i]]
         r = float(radius)
         query = wp.mesh_query_aabb(mesh, ps - wp.vec3(r, r, r), ps + wp.vec3(r, r, r))
         face = int(0)
@@ -76,7 +75,7 @@ def self_contact_kernels(scalar) -> SimpleNamespace:
             ia = triangles[face, 0]
             ib = triangles[face, 1]
             ic = triangles[face, 2]
-            if ia == i or ib == i or ic == i:
+            if ia == i or ib == i or ic == i or vertex_instance[ia] != vertex_instance[i]:
                 continue
             q, bary, interior = closest_point_triangle(p, x[ia], x[ib], x[ic])
             if wp.length(p - q) < radius:
@@ -138,8 +137,9 @@ class SelfContactSet:
         # The BVH's tree is built once, here, and only refit later: build it on the (shifted) rest
         # shape so its topology follows the garment (a tree built on coincident points would make
         # every box overlap every query).
-        shift = INSTANCE_SPACING * np.asarray(model.host.vertex_instance, dtype=np.float64)
-        rest = np.asarray(model.host.rest_positions, dtype=np.float64) + np.outer(shift, [1.0, 0.0, 0.0])
+        self.offsets = wp.array(instance_offsets(model.num_instances), dtype=wp.vec3, device=dev)
+        shift = self.offsets.numpy()[np.asarray(model.host.vertex_instance)]
+        rest = np.asarray(model.host.rest_positions, dtype=np.float64) + shift
         self.points = wp.array(rest.astype(np.float32), dtype=wp.vec3, device=dev)
         flat = wp.array(np.asarray(model.host.triangles, dtype=np.int32).reshape(-1), dtype=wp.int32, device=dev)
         self._indices = flat  # the BVH keeps a reference; it must outlive the mesh
@@ -152,10 +152,10 @@ class SelfContactSet:
         m, p = self.model, self.params
         k = self_contact_kernels(m.scalar)
         wp.launch(k.shift, dim=m.num_vertices, device=m.device,
-                  inputs=[positions, m.vertex_instance, INSTANCE_SPACING, self.points])
+                  inputs=[positions, m.vertex_instance, self.offsets, self.points])
         self.mesh.refit()
         wp.launch(k.candidates, dim=m.num_vertices, device=m.device, inputs=[
-            positions, m.vertex_instance, m.triangles, self.mesh.id, INSTANCE_SPACING, p.search_radius,
+            positions, m.vertex_instance, m.triangles, self.mesh.id, self.offsets, p.search_radius,
             p.max_candidates, self.candidate, self.count])
 
 
