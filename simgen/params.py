@@ -112,8 +112,8 @@ class SelfContactParams:
     search_radius: float = setting(1.0e-2, low=0.0, inclusive=False,
                                    doc="[m] candidate triangles are gathered within it (must exceed the thickness)")
     max_candidates: int = setting(16, low=1, doc="triangles kept per vertex (the first found within the radius)")
-    impact_rounds: int = setting(4, low=1, doc="passes of the impact filter per substep (the last keeps what "
-                                               "still impacts at the substep's start)")
+    impact_rounds: int = setting(4, low=1, doc="detection passes of the impact filter per substep (an instance "
+                                               "still impacting in the last one moves as one zone)")
 
     def __post_init__(self) -> None:
         validate(self, "self-contact")

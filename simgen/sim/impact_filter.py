@@ -316,7 +316,7 @@ def impact_kernels(scalar) -> SimpleNamespace:
 
     return SimpleNamespace(boxes=boxes, vertex_triangle=vertex_triangle, edge_edge=edge_edge, zone_sums=zone_sums,
                            move_zones=move_zones, start=start, clear=clear, next_round=next_round,
-                           time_of_impact=time_of_impact)
+                           time_of_impact=time_of_impact, pair_distance=pair_distance)
 
 
 class ImpactFilter:
