@@ -4,8 +4,9 @@ N instances of a garment on the open body doing one library motion (betas 1 = 0,
 with a preset's solver settings (default thesis-tshirt), through :func:`simgen.sim.simulate_batch`
 once without and once with self-contact (repulsion + impact filter). Per run: wall time, the
 stepping time per output frame (first and last tenth of the clip), output frames with crossing
-edges, the deepest regular vertex inside the body. With ``--profile`` the self-contact run is
-repeated without CUDA graphs and every call is synchronised and timed: the impact filter's ms per
+edges, the deepest regular vertex inside the body. ``--variants`` runs self-contact with other
+parameters too (``thickness=3e-3,stiffness=1e5``: fields of SelfContactParams). With ``--profile``
+the first self-contact run is repeated without CUDA graphs and every call is synchronised and timed: the impact filter's ms per
 substep and its rounds, by quarter of the run, and how many substeps moved a whole garment as one
 zone.
 
@@ -81,6 +82,7 @@ def main() -> None:
     p.add_argument("--motion", default="run")
     p.add_argument("-n", type=int, default=16, help="instances in the batch")
     p.add_argument("--frames", type=int, default=90)
+    p.add_argument("--variants", nargs="*", default=[], help="more self-contact runs: FIELD=VALUE,... each")
     p.add_argument("--profile", action="store_true", help="also time the filter per call, without CUDA graphs")
     p.add_argument("--out", type=Path)
     a = p.parse_args()
@@ -97,7 +99,12 @@ def main() -> None:
     garment, motion = load_garment(a.garment, body=body), load_motion(a.motion)
     out = {"device": wp.get_device(cfg.device).name, "commit": commit(), "preset": a.preset, "garment": a.garment,
            "vertices": len(garment.vertices), "motion": a.motion, "instances": a.n, "frames": a.frames, "runs": {}}
-    for name, sc in (("none", None), ("self_contact", SelfContactParams())):
+    runs = [("none", None), ("self_contact", SelfContactParams())]
+    for text in a.variants:
+        fields = dict(item.split("=") for item in text.split(","))
+        runs.append((f"self_contact {text}", SelfContactParams(**{k: type(getattr(SelfContactParams(), k))(float(v))
+                                                                   for k, v in fields.items()})))
+    for name, sc in runs:
         run_cfg = replace(cfg, solver=replace(cfg.solver, self_contact=sc))
         out["runs"][name] = run(garment, body, motion, a.n, a.frames, run_cfg)
         print(json.dumps({name: out["runs"][name]}), flush=True)

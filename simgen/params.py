@@ -96,8 +96,8 @@ class FrictionParams:
 @documented
 @dataclass(frozen=True)
 class SelfContactParams:
-    """Cloth-cloth repulsion k * max(thickness - d, 0)^power between a vertex and a triangle
-    (:mod:`simgen.sim.energies.self_contact`).
+    """Cloth-cloth repulsion k * max(thickness - d, 0)^power between a vertex and a triangle and
+    between two edges (:mod:`simgen.sim.energies.self_contact`).
 
     Two layers of cloth stay about ``thickness`` apart (the counterpart of the body contact's
     margin); stiffness and power read as the body contact penalty's (:class:`ContactParams`).
@@ -111,7 +111,8 @@ class SelfContactParams:
     power: float = setting(3.0, low=2.0, doc="[-] the penalty's exponent p")
     search_radius: float = setting(1.0e-2, low=0.0, inclusive=False,
                                    doc="[m] candidate triangles are gathered within it (must exceed the thickness)")
-    max_candidates: int = setting(16, low=1, doc="triangles kept per vertex (the first found within the radius)")
+    max_candidates: int = setting(16, low=1, doc="triangles kept per vertex, and edges per edge (the first "
+                                                 "found within the radius)")
     impact_rounds: int = setting(4, low=1, doc="detection passes of the impact filter per substep (an instance "
                                                "still impacting in the last one moves as one zone)")
 

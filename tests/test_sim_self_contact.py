@@ -1,4 +1,4 @@
-"""Cloth self-contact (vertex-triangle repulsion): finite differences, the analytic energy, and
+"""Cloth self-contact (vertex-triangle and edge-edge repulsion): finite differences, the analytic energy, and
 a sheet falling onto a pinned sheet of the same instance (stopped) and of another instance (not)."""
 
 import numpy as np
@@ -20,11 +20,13 @@ def two_triangles(p):
     return v, np.array([[0, 1, 2], [3, 4, 5]])
 
 
-@pytest.mark.parametrize("p, expected_d", [
-    ((0.03, 1.0e-3, 0.03), 1.0e-3),                                  # over A's interior
-    ((0.0505, 1.0e-3, 0.0505), float(np.sqrt(2 * 0.0005 ** 2 + 1.0e-6))),  # beyond A's hypotenuse edge
+@pytest.mark.parametrize("p, expected_d, pairs", [
+    ((0.03, 1.0e-3, 0.03), 1.0e-3, 1),                                  # over A's interior
+    # Beyond A's hypotenuse edge: the tip against A, and B's two edges from the tip against that
+    # edge, all three at the same distance (a vertex-edge contact counts once per pair).
+    ((0.0505, 1.0e-3, 0.0505), float(np.sqrt(2 * 0.0005 ** 2 + 1.0e-6)), 3),
 ])
-def test_self_contact_energy_gradient_fd_and_psd_vertex_block(p, expected_d):
+def test_self_contact_energy_gradient_fd_and_psd_vertex_block(p, expected_d, pairs):
     v, f = two_triangles(p)
     model = ClothModel.from_mesh(v, f, "cotton", device="cpu", dtype=wp.float64)
     cset = SelfContactSet(model, PARAMS)
@@ -32,7 +34,8 @@ def test_self_contact_energy_gradient_fd_and_psd_vertex_block(p, expected_d):
     assert cset.count.numpy().tolist() == [0, 0, 0, 1, 0, 0]  # only B's tip sees A, never its own triangle
 
     e, g, h = evaluate(model, eval_self_contact, v, cset)
-    assert e.sum() == pytest.approx(1.0e4 * (2.0e-3 - expected_d) ** 3, rel=1e-9)
+    assert cset.edge_count.numpy().sum() == pairs - 1
+    assert e.sum() == pytest.approx(pairs * 1.0e4 * (2.0e-3 - expected_d) ** 3, rel=1e-9)
     assert rel_err(g, fd_gradient(energy_of(model, eval_self_contact, cset), v)) < 1e-6
     # Momentum: the repulsion is internal, so its forces sum to zero.
     assert np.abs(g.sum(axis=0)).max() < 1e-12 * np.abs(g).max()
@@ -53,6 +56,27 @@ def test_self_contact_energy_gradient_fd_and_psd_vertex_block(p, expected_d):
     far[3, 1] = 3.0e-3
     e_far, g_far, h_far = evaluate(model, eval_self_contact, far, cset)
     assert e_far.sum() == 0.0 and not g_far.any() and not h_far.any()
+
+
+def test_edge_edge_repulsion_of_crossing_edges():
+    # Triangle A in the y = 0 plane with its long edge along x; triangle B above it with its lower
+    # edge along z, 1 mm above A, passing over two of A's edges: no vertex is near a triangle, only
+    # edges are close. Exact energy, finite-difference gradient, momentum, PSD blocks.
+    v = np.array([[-0.05, 0.0, 0.0], [0.05, 0.0, 0.0], [0.0, 0.0, -0.06],
+                  [0.01, 1.0e-3, 0.08], [0.01, 1.0e-3, -0.08], [0.01, 0.06, 0.0]])
+    f = np.array([[0, 1, 2], [3, 4, 5]])
+    model = ClothModel.from_mesh(v, f, "cotton", device="cpu", dtype=wp.float64)
+    cset = SelfContactSet(model, PARAMS)
+    cset.update(wp.array(v, dtype=wp.vec3d, device="cpu"))
+    assert cset.count.numpy().sum() == 0 and cset.edge_count.numpy().sum() == 2
+    e, g, h = evaluate(model, eval_self_contact, v, cset)
+    assert e.sum() == pytest.approx(2 * 1.0e4 * (2.0e-3 - 1.0e-3) ** 3, rel=1e-9)
+    assert rel_err(g, fd_gradient(energy_of(model, eval_self_contact, cset), v)) < 1e-6
+    assert np.abs(g.sum(axis=0)).max() < 1e-12 * np.abs(g).max()
+    assert g[3, 1] < 0.0 and g[0, 1] > 0.0  # dE/dx: pushes B's edge up and A's edge down
+    for i in range(6):
+        block = h[3 * i:3 * i + 3, 3 * i:3 * i + 3]
+        assert np.linalg.eigvalsh(0.5 * (block + block.T)).min() > -1e-12 * max(np.abs(block).max(), 1.0)
 
 
 def stacked_sheets(gap):

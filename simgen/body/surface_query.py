@@ -79,6 +79,9 @@ def contact_funcs(scalar) -> SimpleNamespace:
     picks the sign (0: pseudo-normal, 1: winding number).
 
     closest_point_triangle(p, a, b, c) -> (closest, barycentric weights of a, b, c, interior flag).
+    closest_points_segments(p1, q1, p2, q2) -> (s, t): the closest points p1 + s (q1 - p1) and
+      p2 + t (q2 - p2) of two segments, s and t in [0, 1] (Ericson, Real-Time Collision Detection,
+      5.1.9; parallel segments get one of their closest pairs).
     closest_face(mesh, x, query_distance, winding) -> (found, face, s): the BVH query; s = +-1.
     face_distance(x, a, b, c, s, winding) -> (d, n, closest, bary) on the triangle (a, b, c) given
       the sign s (+-1; 0: the side of the triangle's plane).
@@ -232,7 +235,40 @@ def contact_funcs(scalar) -> SimpleNamespace:
         f0, d0, n0, face0, u0, v0 = body_distance(mesh, x, query_distance, 0)
         return f0, d0, n0, face0, u0, v0
 
-    return SimpleNamespace(closest_point_triangle=closest_point_triangle, closest_face=closest_face,
+    @wp.func
+    def closest_points_segments(p1: vec3, q1: vec3, p2: vec3, q2: vec3):
+        d1 = q1 - p1
+        d2 = q2 - p2
+        r = p1 - p2
+        a = wp.dot(d1, d1)
+        e = wp.dot(d2, d2)
+        f = wp.dot(d2, r)
+        s = zero
+        t = zero
+        if a <= tiny and e <= tiny:
+            return s, t
+        if a <= tiny:
+            t = wp.clamp(f / e, zero, one)
+        else:
+            c = wp.dot(d1, r)
+            if e <= tiny:
+                s = wp.clamp(-c / a, zero, one)
+            else:
+                b = wp.dot(d1, d2)
+                denom = a * e - b * b
+                if denom > tiny * a * e:
+                    s = wp.clamp((b * f - c * e) / denom, zero, one)
+                t = (b * s + f) / e
+                if t < zero:
+                    t = zero
+                    s = wp.clamp(-c / a, zero, one)
+                elif t > one:
+                    t = one
+                    s = wp.clamp((b - c) / a, zero, one)
+        return s, t
+
+    return SimpleNamespace(closest_point_triangle=closest_point_triangle, closest_points_segments=closest_points_segments,
+                           closest_face=closest_face,
                            face_distance=face_distance, body_distance=body_distance, part_distance=part_distance,
                            body_contact=body_contact, held_contact=held_contact)
 

@@ -66,40 +66,13 @@ def impact_kernels(scalar) -> SimpleNamespace:
     tiny = scalar(1.0e-12)
     kept = scalar(GAP_KEPT)
     closest_point_triangle = contact_funcs(scalar).closest_point_triangle
+    closest_points_segments = contact_funcs(scalar).closest_points_segments
     mod = module_name(__name__, scalar)
 
     @wp.func
     def segment_distance(p1: vec3, q1: vec3, p2: vec3, q2: vec3):
-        # Closest points of two segments (Ericson, Real-Time Collision Detection, 5.1.9).
-        d1 = q1 - p1
-        d2 = q2 - p2
-        r = p1 - p2
-        a = wp.dot(d1, d1)
-        e = wp.dot(d2, d2)
-        f = wp.dot(d2, r)
-        s = zero
-        t = zero
-        if a <= tiny and e <= tiny:
-            return wp.length(r)
-        if a <= tiny:
-            t = wp.clamp(f / e, zero, one)
-        else:
-            c = wp.dot(d1, r)
-            if e <= tiny:
-                s = wp.clamp(-c / a, zero, one)
-            else:
-                b = wp.dot(d1, d2)
-                denom = a * e - b * b
-                if denom > tiny * a * e:
-                    s = wp.clamp((b * f - c * e) / denom, zero, one)
-                t = (b * s + f) / e
-                if t < zero:
-                    t = zero
-                    s = wp.clamp(-c / a, zero, one)
-                elif t > one:
-                    t = one
-                    s = wp.clamp((b - c) / a, zero, one)
-        return wp.length((p1 + s * d1) - (p2 + t * d2))
+        s, t = closest_points_segments(p1, q1, p2, q2)
+        return wp.length((p1 + s * (q1 - p1)) - (p2 + t * (q2 - p2)))
 
     @wp.func
     def pair_distance(kind: int, a: vec3, b: vec3, c: vec3, d: vec3):
