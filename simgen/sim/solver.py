@@ -377,34 +377,24 @@ class ImplicitSolver:
                 if self.strain_limiter is not None:
                     self.strain_limiter.apply(work, dt / n)
                 if projecting:
-                    self._project(work, body)
+                    self._inside.zero_()
+                    self._depth.zero_()
+                    body.project(self.model, work, offset=cfg.projection_offset,
+                                 query_distance=cfg.contact.query_distance,
+                                 pinch_distance=cfg.contact.pinch_distance, depth=self._depth, count=self._inside)
+                    wp.launch(self.kernels.keep_max, dim=self.model.num_instances, device=self.model.device,
+                              inputs=[self._depth, self._depth_max])
             if cfg.floor is not None and cfg.project:
                 project_floor(self.model, work, cfg.floor, cfg.projection_offset)
             if self.impact_filter is not None:
-                # After whatever moved the cloth in this substep (solve, limiter, projections). Its
-                # zones translate as one body and may end inside the moving body: the projection
-                # moves those back out (outward only, so it crosses cloth only where another layer
-                # lies closer to the body than the projection offset).
+                # Last: whatever moved the cloth in this substep (solve, limiter, projections).
                 self.impact_filter.apply(self._substep_start, work)
-                if projecting:
-                    self._project(work, body)
             if projecting:
                 self._lag_contacts(work, body)
         state_out.assign(work)
         self._counts["steps"] += 1
 
     # -- internals ----------------------------------------------------------------------------
-
-    def _project(self, state: ClothState, body) -> None:
-        """Move the vertices inside ``body`` to its surface (plus the projection offset); the
-        deepest of them [m] per instance goes into the step's depth statistics."""
-        cfg = self.config
-        self._inside.zero_()
-        self._depth.zero_()
-        body.project(self.model, state, offset=cfg.projection_offset, query_distance=cfg.contact.query_distance,
-                     pinch_distance=cfg.contact.pinch_distance, depth=self._depth, count=self._inside)
-        wp.launch(self.kernels.keep_max, dim=self.model.num_instances, device=self.model.device,
-                  inputs=[self._depth, self._depth_max])
 
     def _place_body(self, state: ClothState, body, t0: float, t1: float) -> None:
         cfg = self.config
