@@ -83,6 +83,8 @@ def main() -> None:
     p.add_argument("-n", type=int, default=16, help="instances in the batch")
     p.add_argument("--frames", type=int, default=90)
     p.add_argument("--variants", nargs="*", default=[], help="more self-contact runs: FIELD=VALUE,... each")
+    p.add_argument("--skip-none", action="store_true", help="no run without self-contact")
+    p.add_argument("--cg-iterations", type=int, help="override the preset's PCG iterations per Newton iteration")
     p.add_argument("--profile", action="store_true", help="also time the filter per call, without CUDA graphs")
     p.add_argument("--out", type=Path)
     a = p.parse_args()
@@ -95,11 +97,14 @@ def main() -> None:
 
     cfg = load_spec(a.preset).solver_config()
     cfg = replace(cfg, device=a.device or cfg.device)
+    if a.cg_iterations is not None:
+        cfg = replace(cfg, solver=replace(cfg.solver, cg_iterations=a.cg_iterations))
     body = load_body("open")
     garment, motion = load_garment(a.garment, body=body), load_motion(a.motion)
     out = {"device": wp.get_device(cfg.device).name, "commit": commit(), "preset": a.preset, "garment": a.garment,
-           "vertices": len(garment.vertices), "motion": a.motion, "instances": a.n, "frames": a.frames, "runs": {}}
-    runs = [("none", None), ("self_contact", SelfContactParams())]
+           "vertices": len(garment.vertices), "motion": a.motion, "instances": a.n, "frames": a.frames,
+           "cg_iterations": cfg.solver.cg_iterations, "runs": {}}
+    runs = [("self_contact", SelfContactParams())] if a.skip_none else [("none", None), ("self_contact", SelfContactParams())]
     for text in a.variants:
         fields = dict(item.split("=") for item in text.split(","))
         runs.append((f"self_contact {text}", SelfContactParams(**{k: type(getattr(SelfContactParams(), k))(float(v))
