@@ -7,30 +7,35 @@ stderr naming the file, field or value, and exit code 2 (never a traceback). Hea
 
 from __future__ import annotations
 
+import re
 import sys
+import time
 from pathlib import Path
-from typing import Optional
+from typing import Optional, TextIO
 
 import typer
 
+from simgen import __version__
 from simgen.errors import InputError
 
 app = typer.Typer(
     name="simgen",
     help="Garment simulation on animated parametric bodies, training datasets and learned garment models.",
     no_args_is_help=True,
-    add_completion=False,
+    add_completion=True,
     pretty_exceptions_enable=False,
 )
 body_app = typer.Typer(help="The body model: inspect it, re-bake the bundled default.", no_args_is_help=True)
 motion_app = typer.Typer(help="Motion clips: the bundled library and your own imports.", no_args_is_help=True)
 garment_app = typer.Typer(help="Garment templates: build, check, import your own OBJ, preview with LBS.",
                           no_args_is_help=True)
+material_app = typer.Typer(help="Cloth material presets (for --material).", no_args_is_help=True)
 export_app = typer.Typer(help="Export sequences for inspection in usdview, Blender or Omniverse.",
                          no_args_is_help=True)
 app.add_typer(body_app, name="body")
 app.add_typer(motion_app, name="motion")
 app.add_typer(garment_app, name="garment")
+app.add_typer(material_app, name="material")
 app.add_typer(export_app, name="export")
 dataset_app = typer.Typer(help="Training datasets: generate (resumable, local or Ray), check, info, export.",
                           no_args_is_help=True)
@@ -41,7 +46,22 @@ eval_app = typer.Typer(help="Evaluate simulations and learned models: physics, g
 app.add_typer(eval_app, name="eval")
 
 BODY_HELP = "Body model: 'open' (the bundled default) or a path to an SMPL model file (.npz or .pkl)."
-BETAS_HELP = "Shape coefficients, comma-separated (e.g. '1.5,-0.5'); missing ones are zero."
+BETAS_HELP = "Shape coefficients: '1.5,-0.5' or '1.5 -0.5'; missing ones are zero."
+GARMENT_HELP = "Garment name (list them: `simgen garment list`)."
+MOTION_HELP = "Motion clip (list them: `simgen motion list`)."
+MATERIAL_HELP = "Material preset (list them: `simgen material list`); default: the garment's."
+#: The rich help panel of the options most users never change (solver internals, thresholds, hyperparameters).
+EXPERT = "Expert options"
+#: The rich help panel of where the results go (keeps the option columns of the main panel narrow).
+OUTPUT = "Output"
+#: Printed before Warp compiles the solver's kernels (not when its kernel cache has them).
+COMPILE_NOTICE = "compiling kernels (first run only, ~30 s)"
+
+#: Options that take several values, comma-separated or as separate words (see normalize_argv):
+#: "number" options collect the numbers that follow (negative ones too), "name" options every word
+#: up to the next option.
+MULTI_VALUE_OPTIONS = {"--betas": "number", "--motions": "name", "--shapes": "name", "--test-shapes": "name"}
+_NUMBER = re.compile(r"[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?")
 
 
 def _console():
@@ -50,8 +70,129 @@ def _console():
     return Console(stderr=True)
 
 
+def _version_callback(value: bool) -> None:
+    if value:
+        typer.echo(f"simgen {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _root(
+    verbose: bool = typer.Option(False, "--verbose", help="Show Warp's own output: its banner, kernel loads and "
+                                 "CUDA driver warnings."),
+    version: bool = typer.Option(False, "--version", callback=_version_callback, is_eager=True,
+                                 help="Print simgen's version and exit."),
+) -> None:
+    from simgen._warp_log import set_verbose
+
+    set_verbose(verbose)
+
+
+def _warp_setup(device: Optional[str] = None) -> None:
+    """Start Warp quietly (its banner and load lines only with --verbose; no CUDA driver warning unless
+    ``device`` asks for CUDA). Commands that run Warp kernels call this first."""
+    from simgen._warp_log import init_warp
+
+    init_warp(device)
+
+
+def _is_number_list(token: str) -> bool:
+    items = [t.strip() for t in token.split(",")]
+    return any(items) and all(_NUMBER.fullmatch(t) for t in items if t)
+
+
+def _is_option(token: str) -> bool:
+    return token.startswith("-") and len(token) > 1 and not _is_number_list(token)
+
+
+def normalize_argv(argv: list[str]) -> list[str]:
+    """Rewrite a command line before Typer parses it.
+
+    Every option of MULTI_VALUE_OPTIONS accepts its values comma-separated or as separate words
+    (``--betas 1 -0.5 2`` is ``--betas 1,-0.5,2``): the words that follow it are joined with commas
+    up to the next word that starts with '-' and is not a number. Where the command's required
+    arguments would then be missing, the last words go back to them (``garment preview --betas 1 2
+    tshirt``, ``dataset generate --motions walk run tiny``: NAME is ``tshirt``, SPEC is ``tiny``;
+    --betas gives back only words that are not numbers). ``--verbose`` written after the command
+    moves in front of it. A command line whose command is unknown is returned as it is (Typer
+    reports it).
+    """
+    import typer.main
+
+    argv = list(argv)
+    cmd = typer.main.get_command(app)
+    i = 0
+    while getattr(cmd, "commands", None) is not None:  # walk the groups down to the command
+        while i < len(argv) and argv[i].startswith("-"):
+            i += 1
+        if i >= len(argv) or argv[i] not in cmd.commands:
+            return argv
+        cmd = cmd.commands[argv[i]]
+        i += 1
+    head, rest = argv[:i], argv[i:]
+    opts = {o for p in cmd.params if getattr(p, "param_type_name", "") == "option" for o in (*p.opts,
+                                                                                               *p.secondary_opts)}
+    takes_value = {o for p in cmd.params if getattr(p, "param_type_name", "") == "option"
+                   and not getattr(p, "is_flag", False) and not getattr(p, "count", False) for o in p.opts}
+    arguments = [p for p in cmd.params if getattr(p, "param_type_name", "") == "argument"]
+    needed = None if any(p.nargs < 0 for p in arguments) else sum(p.nargs for p in arguments if p.required)
+
+    out: list[str] = []
+    runs: list[tuple[int, str, list[str]]] = []  # (index in out of the first value, kind, further words)
+    hoist = []
+    positional = 0
+    j = 0
+    while j < len(rest):
+        tok = rest[j]
+        j += 1
+        if tok == "--":
+            out.append(tok)
+            positional += len(rest) - j
+            out.extend(rest[j:])
+            break
+        name = tok.split("=", 1)[0]
+        if name in MULTI_VALUE_OPTIONS and name in opts:
+            kind = MULTI_VALUE_OPTIONS[name]
+            out.append(tok)
+            if "=" not in tok:
+                if j >= len(rest):
+                    continue
+                out.append(rest[j])  # the first value is the option's, whatever it looks like (-1, ...)
+                j += 1
+            extra = []
+            while j < len(rest) and rest[j] != "--" and not _is_option(rest[j]):
+                extra.append(rest[j])
+                j += 1
+            runs.append((len(out) - 1, kind, extra))
+        elif tok == "--verbose" and tok not in opts:
+            hoist.append(tok)
+        elif name in takes_value:
+            out.append(tok)
+            if "=" not in tok and j < len(rest):
+                out.append(rest[j])
+                j += 1
+        else:
+            out.append(tok)
+            if not _is_option(tok):
+                positional += 1
+
+    missing = 0 if needed is None else max(0, needed - positional)
+    give_back: dict[int, list[str]] = {}
+    for index, kind, extra in reversed(runs):  # a number option gives back only words that are no numbers
+        back: list[str] = []
+        while missing and extra and (kind == "name" or not _is_number_list(extra[-1])):
+            back.insert(0, extra.pop())
+            missing -= 1
+        give_back[index] = back
+    for index, kind, extra in reversed(runs):
+        out[index + 1:index + 1] = give_back.get(index, [])
+        if extra:
+            out[index] += ("" if out[index].endswith("=") else ",") + ",".join(extra)
+    return hoist + head + out
+
+
 def parse_betas(text: Optional[str]) -> list[float]:
-    """Parse a comma-separated list of floats given on the command line."""
+    """Parse the comma-separated floats of --betas (normalize_argv joins '--betas 1 2' to '1,2')."""
     if text is None or not text.strip():
         return []
     values = []
@@ -59,7 +200,8 @@ def parse_betas(text: Optional[str]) -> list[float]:
         try:
             values.append(float(item))
         except ValueError:
-            raise InputError(f"--betas: {item.strip()!r} is not a number (expected e.g. '1.5,-0.5')") from None
+            raise InputError(f"--betas: {item.strip()!r} is not a number (expected e.g. '1.5,-0.5' or "
+                             f"'1.5 -0.5')") from None
     return values
 
 
@@ -69,18 +211,65 @@ def _load_body(spec: str):
     return load(spec)
 
 
-def _progress(description: str, total: int):
-    """A rich progress bar on stderr; returns (progress, callback(done, total))."""
+class _PlainProgress:
+    """Progress for a stderr that is not a terminal (a log file, a pipe, CI): one line per 10%."""
+
+    def __init__(self, description: str, total: int, stream: TextIO):
+        self.description, self.total, self.stream = description, total, stream
+        self._t0 = time.perf_counter()
+        self._last = 0  # the last tenth written
+
+    def __enter__(self):
+        self._t0 = time.perf_counter()
+        return self
+
+    def __exit__(self, *exc) -> bool:
+        return False
+
+    def note(self, text: str) -> None:
+        print(text, file=self.stream, flush=True)
+
+    def update(self, done: int, total: int | None = None) -> None:
+        total = total or self.total
+        if total <= 0:
+            return
+        tenth = min(10, int(10 * done / total))
+        if tenth > self._last:
+            self._last = tenth
+            print(f"{self.description}: {10 * tenth}% ({done}/{total}, {time.perf_counter() - self._t0:.0f} s)",
+                  file=self.stream, flush=True)
+
+
+def _progress(description: str, total: int, stream: Optional[TextIO] = None):
+    """Progress on stderr; returns (progress, callback(done, total)), progress being a context manager.
+
+    A terminal gets rich's live bar; anything else (``stream.isatty()`` false: a log file, a pipe)
+    a plain line per 10%. ``_note(progress, text)`` prints a line above either.
+    """
+    stream = sys.stderr if stream is None else stream
+    isatty = getattr(stream, "isatty", None)
+    if not (callable(isatty) and isatty()):
+        plain = _PlainProgress(description, total, stream)
+        return plain, plain.update
+    from rich.console import Console
     from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
     progress = Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
-                        TimeRemainingColumn(), console=_console(), transient=True)
+                        TimeRemainingColumn(), console=Console(file=stream), transient=True)
     task = progress.add_task(description, total=total)
 
     def update(done: int, total_: int | None = None) -> None:
         progress.update(task, completed=done, total=total_ or total)
 
     return progress, update
+
+
+def _note(progress, text: str) -> None:
+    """A line on stderr above a progress bar of _progress (without breaking it)."""
+    if isinstance(progress, _PlainProgress):
+        progress.note(text)
+    else:
+        progress.console.print(text, highlight=False, markup=False, soft_wrap=True)
 
 
 def _posed_body_sequence(body, clip, betas, max_frames: Optional[int]):
@@ -126,19 +315,22 @@ def _render_body(folder: Path, body, clip, vertices) -> tuple[Path, Path]:
 # --------------------------------------------------------------------------------------------- demo
 @app.command()
 def demo(
-    out: Path = typer.Option(Path("simgen-demo"), "--out", help="Output folder."),
-    garment: str = typer.Option("tshirt", "--garment", help="Garment name (see `simgen garment list`)."),
-    motion: str = typer.Option("walk", "--motion", help="Library motion to perform."),
+    out: Path = typer.Option(Path("simgen-demo"), "--out", help="Output folder.", rich_help_panel=OUTPUT),
+    garment: str = typer.Option("tshirt", "--garment", help=GARMENT_HELP),
+    motion: str = typer.Option("walk", "--motion", help=MOTION_HELP),
     seconds: float = typer.Option(3.0, "--seconds", help="Seconds of the motion to simulate."),
     body: str = typer.Option("open", "--body", help=BODY_HELP),
     betas: Optional[str] = typer.Option(None, "--betas", help=BETAS_HELP),
     device: Optional[str] = typer.Option(None, "--device", help="Warp device: cpu or cuda (default: Warp's)."),
-    video: bool = typer.Option(True, "--video/--no-video", help="Render an MP4 (and a PNG preview)."),
+    video: bool = typer.Option(True, "--video/--no-video", help="Render an MP4 (and a PNG preview).",
+                               rich_help_panel=OUTPUT),
 ) -> None:
     """Simulate the T-shirt on the bundled body for a few seconds of a walk; write npz, USD and MP4.
 
-    The same as `simgen simulate --garment tshirt --motion walk --frames 91`: the thesis start
-    protocol (2 s of relax, ramp and rest), then the motion; about 1.5 minutes on a 2-core CPU.
+    The same as `simgen simulate --garment tshirt --motion walk --frames 91`:
+    the thesis start protocol (2 s of relax, ramp and rest), then the motion.
+    About 2.5 minutes on a 2-core CPU (2 min 25 s measured, kernels cached);
+    the first run also compiles Warp's kernels (~30 s).
     """
     from simgen.motion import load_motion
 
@@ -284,6 +476,7 @@ def garment_build(
     if target_triangles is not None and target_triangles < 200:
         raise InputError(f"--target-triangles must be at least 200, got {target_triangles}")
     model = _load_body(body)
+    _warp_setup()
     folder = out if out is not None else default_out_dir(model)
     for n in names:
         typer.echo(f"building {n} ...", err=True)
@@ -294,7 +487,8 @@ def garment_build(
 
 @garment_app.command("check")
 def garment_check(
-    name: str = typer.Argument("all", help="Garment name, or 'all' for every garment of the body."),
+    name: str = typer.Argument("all", help="Garment name (list them: `simgen garment list`), or 'all' for every "
+                                           "garment of the body."),
     body: str = typer.Option("open", "--body", help=BODY_HELP),
     as_json: bool = typer.Option(False, "--json", help="Print the reports as JSON."),
 ) -> None:
@@ -305,6 +499,7 @@ def garment_check(
     from simgen.garment import check_garment, list_garments, load_garment
 
     model = _load_body(body)
+    _warp_setup()
     names = [r["name"] for r in list_garments(body_asset_id(model))] if name == "all" else [name]
     reports = {n: check_garment(load_garment(n, body=model), model) for n in names}
     if as_json:
@@ -324,7 +519,8 @@ def garment_import(
     file: Path = typer.Argument(..., help="The garment as a Wavefront OBJ, placed on the body in rest pose (metres)."),
     name: str = typer.Option(..., "--name", help="Name of the imported garment (letters, digits, _ and -)."),
     body: str = typer.Option("open", "--body", help=BODY_HELP),
-    skinning: Optional[str] = typer.Option(None, "--skinning", help="closest or diffused (default: by distance)."),
+    skinning: Optional[str] = typer.Option(None, "--skinning", help="closest or diffused (default: by distance).",
+                                           rich_help_panel=EXPERT),
     scale: Optional[float] = typer.Option(None, "--scale", help="Multiply coordinates (e.g. 0.01 for centimetres)."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an imported garment of the same name."),
     check_only: bool = typer.Option(False, "--check-only", help="Only validate and print the report."),
@@ -336,6 +532,7 @@ def garment_import(
     if skinning not in (None, "closest", "diffused"):
         raise InputError(f"--skinning must be 'closest' or 'diffused', got {skinning!r}")
     model = _load_body(body)
+    _warp_setup()
     try:
         if check_only:
             report = validate_obj(file, model, scale=scale)
@@ -353,13 +550,14 @@ def garment_import(
 
 @garment_app.command("preview")
 def garment_preview(
-    name: str = typer.Argument(..., help="Garment name (see `simgen garment list`)."),
-    motion: str = typer.Option("walk", "--motion", help="Library motion to perform."),
+    name: str = typer.Argument(..., help=GARMENT_HELP),
+    motion: str = typer.Option("walk", "--motion", help=MOTION_HELP),
     body: str = typer.Option("open", "--body", help=BODY_HELP),
     betas: Optional[str] = typer.Option(None, "--betas", help=BETAS_HELP),
-    out: Path = typer.Option(Path("simgen-preview"), "--out", help="Output folder."),
+    out: Path = typer.Option(Path("simgen-preview"), "--out", help="Output folder.", rich_help_panel=OUTPUT),
     frames: Optional[int] = typer.Option(None, "--frames", help="Use only the first N frames."),
-    video: bool = typer.Option(True, "--video/--no-video", help="Render an MP4 (and a PNG preview)."),
+    video: bool = typer.Option(True, "--video/--no-video", help="Render an MP4 (and a PNG preview).",
+                               rich_help_panel=OUTPUT),
     color_by_joint: bool = typer.Option(False, "--color-by-joint", help="Colour the garment by dominant joint."),
 ) -> None:
     """The LBS baseline: the garment skinned with the body (no physics), as USD + MP4 + PNG."""
@@ -382,38 +580,67 @@ def garment_preview(
             typer.echo(f"{kind}: {path}")
 
 
+# --------------------------------------------------------------------------------------------- material
+@material_app.command("list")
+def material_list(
+    as_json: bool = typer.Option(False, "--json", help="Print JSON instead of a table."),
+) -> None:
+    """The material presets that --material takes (simgen.materials.MATERIALS)."""
+    import json
+
+    from simgen.materials import MATERIALS
+
+    rows = [{"name": name, "area_density": m.area_density, "youngs_modulus": m.youngs_modulus,
+             "poisson_ratio": m.poisson_ratio, "thickness": m.thickness, "bending_stiffness": m.bending_stiffness}
+            for name, m in MATERIALS.items()]
+    if as_json:
+        typer.echo(json.dumps(rows, indent=2))
+        return
+    from rich.console import Console
+    from rich.table import Table
+
+    table = Table(title=f"{len(rows)} materials")
+    for col in ("name", "kg/m^2", "E (Pa)", "Poisson", "thickness (mm)", "bending (N m)"):
+        table.add_column(col)
+    for r in rows:
+        table.add_row(r["name"], f"{r['area_density']:g}", f"{r['youngs_modulus']:.3g}", f"{r['poisson_ratio']:g}",
+                      f"{1e3 * r['thickness']:g}", f"{r['bending_stiffness']:.3g}")
+    Console().print(table)
+
+
 # --------------------------------------------------------------------------------------------- simulate
 @app.command()
 def simulate(
-    garment: str = typer.Option(..., "--garment", help="Garment name (see `simgen garment list`)."),
-    motion: str = typer.Option(..., "--motion", help="Library motion to perform."),
+    garment: str = typer.Option(..., "--garment", help=GARMENT_HELP),
+    motion: str = typer.Option(..., "--motion", help=MOTION_HELP),
     body: str = typer.Option("open", "--body", help=BODY_HELP),
     betas: Optional[str] = typer.Option(None, "--betas", help=BETAS_HELP),
-    material: Optional[str] = typer.Option(None, "--material",
-                                           help="Material preset (cotton, interlock, denim, silk); default: the garment's."),
+    material: Optional[str] = typer.Option(None, "--material", help=MATERIAL_HELP),
     device: Optional[str] = typer.Option(None, "--device", help="Warp device: cpu or cuda (default: Warp's)."),
     frames: Optional[int] = typer.Option(None, "--frames", help="Simulate only the first N frames of the clip."),
+    out: Path = typer.Option(Path("simgen-sim"), "--out", help="Output folder.", rich_help_panel=OUTPUT),
+    video: bool = typer.Option(True, "--video/--no-video", help="Render an MP4 (and a PNG preview).",
+                               rich_help_panel=OUTPUT),
     # The solver flags default to None: SimulationConfig's / SolverConfig's own defaults and bounds
     # apply (simgen.sim.config declares them; checked with the flag's name before anything runs).
     substeps: Optional[int] = typer.Option(
-        None, "--substeps", help="Solver steps per frame (SimulationConfig.substeps; the thesis: 10 at 30 fps, "
-                                 "3.33 ms)."),
+        None, "--substeps", rich_help_panel=EXPERT,
+        help="Solver steps per frame (SimulationConfig.substeps; the thesis: 10 at 30 fps, 3.33 ms)."),
     newton_iterations: Optional[int] = typer.Option(
-        None, "--newton-iterations", help="Newton iterations per substep (SolverConfig.newton_iterations; "
-                                          "ARCSim: 1; 2 keeps fast limbs from flicking single cloth vertices "
-                                          "for a frame; each is one more assembly and solve)."),
+        None, "--newton-iterations", rich_help_panel=EXPERT,
+        help="Newton iterations per substep (SolverConfig.newton_iterations; ARCSim: 1; 2 keeps fast limbs "
+             "from flicking single cloth vertices for a frame; each is one more assembly and solve)."),
     strain_limit: Optional[float] = typer.Option(
-        None, "--strain-limit", help="Largest principal stretch - 1 any triangle may keep after a substep "
-                                     "(SolverConfig.strain_limit, e.g. 0.5; unset: no limit). Stops the "
-                                     "one-frame spikes of cloth squeezed between body parts."),
+        None, "--strain-limit", rich_help_panel=EXPERT,
+        help="Largest principal stretch - 1 any triangle may keep after a substep (SolverConfig.strain_limit, "
+             "e.g. 0.5; unset: no limit). Stops the one-frame spikes of cloth squeezed between body parts."),
     constraint_rounds: Optional[int] = typer.Option(
-        None, "--constraint-rounds", help="How many times the strain limiter and the body projection alternate "
-                                          "after each substep (SolverConfig.constraint_rounds; 2 in the thesis "
-                                          "presets: the projection re-stretches what the limiter bounded)."),
-    self_contact: bool = typer.Option(False, "--self-contact/--no-self-contact",
+        None, "--constraint-rounds", rich_help_panel=EXPERT,
+        help="How many times the strain limiter and the body projection alternate after each substep "
+             "(SolverConfig.constraint_rounds; 2 in the thesis presets: the projection re-stretches what the "
+             "limiter bounded)."),
+    self_contact: bool = typer.Option(False, "--self-contact", rich_help_panel=EXPERT,
                                       help="Cloth-cloth vertex-triangle repulsion (SelfContactParams' defaults)."),
-    out: Path = typer.Option(Path("simgen-sim"), "--out", help="Output folder."),
-    video: bool = typer.Option(True, "--video/--no-video", help="Render an MP4 (and a PNG preview)."),
 ) -> None:
     """Simulate a garment on the body performing a motion (thesis start protocol, then the clip).
 
@@ -452,6 +679,7 @@ def _simulate_and_write(*, garment: str, motion: str, body: str, betas: Optional
         get_material(material)
     if device is not None and device not in ("cpu", "cuda") and not device.startswith("cuda:"):
         raise InputError(f"--device must be cpu, cuda or cuda:N, got {device!r}")
+    _warp_setup(device)
     model = _load_body(body)
     model.check_betas(beta_values or [0.0])
     cloth = load_garment(garment, body=model)
@@ -472,7 +700,9 @@ def _simulate_and_write(*, garment: str, motion: str, body: str, betas: Optional
         done[0] += 1
         update(done[0], total)
 
-    with progress:
+    from simgen._warp_log import compile_notice
+
+    with progress, compile_notice(lambda: _note(progress, COMPILE_NOTICE)):
         result = run_simulation(cloth, model, clip, beta_values or None, config, frames=frames, progress=on_frame)
     out.mkdir(parents=True, exist_ok=True)
     stem = f"{cloth.name}_{clip.name}"
@@ -512,7 +742,8 @@ def _simulate_and_write(*, garment: str, motion: str, body: str, betas: Optional
 @export_app.command("usd")
 def export_usd(
     out: Path = typer.Option(..., "--out", help="Output file (.usdc, or .usda for text)."),
-    motion: Optional[str] = typer.Option(None, "--motion", help="Library motion to perform (not with --compare)."),
+    motion: Optional[str] = typer.Option(None, "--motion", help="Motion clip (list them: `simgen motion list`); "
+                                         "not with --compare."),
     body: str = typer.Option("open", "--body", help=BODY_HELP),
     betas: Optional[str] = typer.Option(None, "--betas", help=BETAS_HELP),
     frames: Optional[int] = typer.Option(None, "--frames", help="Use only the first N frames."),
@@ -531,6 +762,7 @@ def export_usd(
     if compare:
         from simgen.learn._cli import run_export_compare
 
+        _warp_setup()
         run_export_compare(out=out, model=model_dir, dataset=dataset, sequence=sequence, frames=frames,
                            body=None if body == "open" else body, echo=typer.echo, progress_factory=_progress)
         return
@@ -548,7 +780,7 @@ def export_usd(
 # --------------------------------------------------------------------------------------------- render
 @app.command()
 def render(
-    motion: str = typer.Option(..., "--motion", help="Library motion to perform."),
+    motion: str = typer.Option(..., "--motion", help=MOTION_HELP),
     out: Path = typer.Option(Path("simgen-render"), "--out", help="Output folder."),
     body: str = typer.Option("open", "--body", help=BODY_HELP),
     betas: Optional[str] = typer.Option(None, "--betas", help=BETAS_HELP),
@@ -571,15 +803,19 @@ def render(
 # --------------------------------------------------------------------------------------------- dataset
 @dataset_app.command("generate")
 def dataset_generate(
-    spec: str = typer.Argument(..., help="A TOML spec file or a preset: tiny, thesis-tshirt, thesis-dress."),
+    spec: str = typer.Argument(..., help="A TOML spec file or a bundled preset (list them: "
+                                         "`simgen dataset presets`)."),
     out: Optional[str] = typer.Option(None, "--out", help="Store folder or fsspec URL (default: the spec's)."),
     ray: Optional[str] = typer.Option(None, "--ray", help="Run batches as Ray tasks: 'local' or a cluster address."),
     device: Optional[str] = typer.Option(None, "--device", help="Warp device: auto, cpu, cuda or cuda:N."),
-    batch_size: Optional[int] = typer.Option(None, "--batch-size", help="Sequences per batched solver call."),
-    substeps: Optional[int] = typer.Option(None, "--substeps", help="Solver steps per frame."),
+    batch_size: Optional[int] = typer.Option(None, "--batch-size", help="Sequences per batched solver call.",
+                                             rich_help_panel=EXPERT),
+    substeps: Optional[int] = typer.Option(None, "--substeps", help="Solver steps per frame.", rich_help_panel=EXPERT),
     max_frames: Optional[int] = typer.Option(None, "--max-frames", help="Frames kept per clip (0: all)."),
-    motions: Optional[str] = typer.Option(None, "--motions", help="Comma-separated library motions (or globs)."),
-    shapes: Optional[str] = typer.Option(None, "--shapes", help="Comma-separated shape ids of the spec to keep."),
+    motions: Optional[str] = typer.Option(None, "--motions", help="Only these motions of the spec, or globs: "
+                                          "'walk,run*' or 'walk run*' (list them: `simgen motion list`)."),
+    shapes: Optional[str] = typer.Option(None, "--shapes", help="Only these shape ids of the spec (its [shapes] "
+                                         "table): 'zero,b0p2' or 'zero b0p2'."),
     max_sequences: Optional[int] = typer.Option(None, "--max-sequences", help="Write at most N new sequences."),
     time_budget: Optional[float] = typer.Option(None, "--time-budget",
                                                 help="Seconds: start no batch that would not finish in time."),
@@ -589,6 +825,8 @@ def dataset_generate(
     """Simulate a spec's shapes x motions into a resumable Zarr store (rerun the same command to resume)."""
     from simgen.dataset._cli import run_generate
 
+    if not dry_run and ray is None:
+        _warp_setup(device)
     code = run_generate(spec, out=out, ray=ray, max_sequences=max_sequences, time_budget=time_budget,
                         report=report, dry_run=dry_run, console=_console(), progress_factory=_progress,
                         overrides=dict(device=device, batch_size=batch_size, substeps=substeps, max_frames=max_frames,
@@ -601,10 +839,12 @@ def dataset_generate(
 @dataset_app.command("check")
 def dataset_check(
     path: str = typer.Argument(..., help="The dataset store (folder or fsspec URL)."),
-    stride: int = typer.Option(1, "--stride",
+    stride: int = typer.Option(1, "--stride", rich_help_panel=EXPERT,
                                help="Check body penetration on every N-th frame (strain and NaN: every frame)."),
-    max_depth: float = typer.Option(1.0e-3, "--max-depth", help="Deepest allowed vertex inside the body [m]."),
-    max_strain: float = typer.Option(1.0, "--max-strain", help="Largest allowed principal stretch - 1."),
+    max_depth: float = typer.Option(1.0e-3, "--max-depth", help="Deepest allowed vertex inside the body [m].",
+                                    rich_help_panel=EXPERT),
+    max_strain: float = typer.Option(1.0, "--max-strain", help="Largest allowed principal stretch - 1.",
+                                     rich_help_panel=EXPERT),
     require_complete: bool = typer.Option(False, "--require-complete", help="Planned but missing sequences fail."),
     as_json: bool = typer.Option(False, "--json", help="Print the report as JSON."),
 ) -> None:
@@ -612,6 +852,7 @@ def dataset_check(
     vs store (exit 1 on a problem); cloth through itself is counted on every frame and reported."""
     from simgen.dataset._cli import run_check
 
+    _warp_setup()
     code = run_check(path, stride=stride, max_depth=max_depth, max_strain=max_strain,
                      require_complete=require_complete, as_json=as_json, progress_factory=_progress)
     if code:
@@ -627,6 +868,30 @@ def dataset_info(
     from simgen.dataset._cli import run_info
 
     run_info(path, as_json=as_json)
+
+
+@dataset_app.command("presets")
+def dataset_presets(
+    as_json: bool = typer.Option(False, "--json", help="Print JSON instead of a table."),
+) -> None:
+    """The bundled dataset specs that `simgen dataset generate` takes by name."""
+    import json
+
+    from simgen.dataset.spec import list_presets, load_spec
+
+    rows = [{"name": name, "description": load_spec(name).description} for name in list_presets()]
+    if as_json:
+        typer.echo(json.dumps(rows, indent=2))
+        return
+    from rich.console import Console
+    from rich.table import Table
+
+    table = Table(title=f"{len(rows)} dataset presets")
+    table.add_column("name", no_wrap=True)
+    table.add_column("description")
+    for r in rows:
+        table.add_row(r["name"], r["description"] or "-")
+    Console().print(table)
 
 
 @dataset_app.command("export")
@@ -662,8 +927,8 @@ _T_OUT = typer.Option(..., "--out", help="Model folder (fit/, wrinkle/, baseline
 _T_DEVICE = typer.Option("cpu", "--device", help="Torch device: cpu, cuda or cuda:N.")
 _T_SPLIT = typer.Option(None, "--split", help="motion (thesis: held-out motions) or shape (also hold out shapes); "
                         "default: the folder's split, else motion.")
-_T_TEST_SHAPES = typer.Option(None, "--test-shapes", help="With --split shape: shape ids to hold out (default: "
-                              "the most extreme).")
+_T_TEST_SHAPES = typer.Option(None, "--test-shapes", help="With --split shape: shape ids to hold out, 'a,b' or "
+                              "'a b' (default: the most extreme).")
 _T_BUDGET = typer.Option(None, "--time-budget", help="Seconds: stop cleanly (everything saved) after this long.")
 _T_RESTART = typer.Option(False, "--restart", help="Discard a saved run in the folder instead of resuming it.")
 _T_TB = typer.Option(False, "--tensorboard", help="Also write TensorBoard events (needs tensorboard).")
@@ -675,10 +940,11 @@ _T_MAXF = typer.Option(None, "--max-frames", help="Use only the first N frames o
 def train_fit_cmd(
     dataset: str = _T_DATASET, out: Path = _T_OUT, device: str = _T_DEVICE,
     epochs: Optional[int] = typer.Option(None, "--epochs", help="Epochs (thesis: 2000)."),
-    batch_size: Optional[int] = typer.Option(None, "--batch-size", help="Shapes per step (128)."),
-    hidden: Optional[int] = typer.Option(None, "--hidden", help="Hidden units (20)."),
-    dropout: Optional[float] = typer.Option(None, "--dropout", help="Dropout (0.2)."),
-    lr: Optional[float] = typer.Option(None, "--lr", help="Adam learning rate (1e-3)."),
+    batch_size: Optional[int] = typer.Option(None, "--batch-size", help="Shapes per step (128).",
+                                             rich_help_panel=EXPERT),
+    hidden: Optional[int] = typer.Option(None, "--hidden", help="Hidden units (20).", rich_help_panel=EXPERT),
+    dropout: Optional[float] = typer.Option(None, "--dropout", help="Dropout (0.2).", rich_help_panel=EXPERT),
+    lr: Optional[float] = typer.Option(None, "--lr", help="Adam learning rate (1e-3).", rich_help_panel=EXPERT),
     split: Optional[str] = _T_SPLIT, test_shapes: Optional[str] = _T_TEST_SHAPES,
     time_budget: Optional[float] = _T_BUDGET, restart: bool = _T_RESTART, tensorboard: bool = _T_TB,
     seed: int = typer.Option(0, "--seed", help="Random seed."), body: Optional[str] = _T_BODY,
@@ -694,25 +960,30 @@ def train_fit_cmd(
 def train_wrinkle_cmd(
     dataset: str = _T_DATASET, out: Path = _T_OUT, device: str = _T_DEVICE,
     epochs: Optional[int] = typer.Option(None, "--epochs", help="Epochs (thesis: 2000)."),
-    batch_size: Optional[int] = typer.Option(None, "--batch-size", help="Sequences per batch (128)."),
-    hidden: Optional[int] = typer.Option(None, "--hidden", help="GRU units (1500)."),
-    dropout: Optional[float] = typer.Option(None, "--dropout", help="Dropout (0.2)."),
-    lr: Optional[float] = typer.Option(None, "--lr", help="Adam learning rate (1e-3)."),
-    window: Optional[int] = typer.Option(None, "--window", help="TBPTT window in frames (90)."),
+    batch_size: Optional[int] = typer.Option(None, "--batch-size", help="Sequences per batch (128).",
+                                             rich_help_panel=EXPERT),
+    hidden: Optional[int] = typer.Option(None, "--hidden", help="GRU units (1500).", rich_help_panel=EXPERT),
+    dropout: Optional[float] = typer.Option(None, "--dropout", help="Dropout (0.2).", rich_help_panel=EXPERT),
+    lr: Optional[float] = typer.Option(None, "--lr", help="Adam learning rate (1e-3).", rich_help_panel=EXPERT),
+    window: Optional[int] = typer.Option(None, "--window", help="TBPTT window in frames (90).",
+                                         rich_help_panel=EXPERT),
     features: Optional[str] = typer.Option(None, "--features", help="Motion descriptor: pose_velocity (default) or "
-                                           "pose (thesis)."),
+                                           "pose (thesis).", rich_help_panel=EXPERT),
     split: Optional[str] = _T_SPLIT, test_shapes: Optional[str] = _T_TEST_SHAPES,
     time_budget: Optional[float] = _T_BUDGET, restart: bool = _T_RESTART, tensorboard: bool = _T_TB,
-    val_every: Optional[int] = typer.Option(None, "--val-every", help="Held-out-motion error every N epochs (10)."),
-    grad_clip: Optional[float] = typer.Option(None, "--grad-clip", help="Clip the gradient norm (default: off)."),
-    baselines: bool = typer.Option(True, "--baselines/--no-baselines", help="Also fit the linear baselines."),
+    val_every: Optional[int] = typer.Option(None, "--val-every", help="Held-out-motion error every N epochs (10).",
+                                            rich_help_panel=EXPERT),
+    grad_clip: Optional[float] = typer.Option(None, "--grad-clip", help="Clip the gradient norm (default: off).",
+                                              rich_help_panel=EXPERT),
+    no_baselines: bool = typer.Option(False, "--no-baselines", help="Skip fitting the linear baselines."),
+    _baselines: bool = typer.Option(False, "--baselines", hidden=True, help="The default (kept for old scripts)."),
     max_frames: Optional[int] = _T_MAXF, seed: int = typer.Option(0, "--seed", help="Random seed."),
     body: Optional[str] = _T_BODY,
 ) -> None:
     """Train the wrinkle GRU R_L(beta, theta) with TBPTT (and fit the linear baselines); resumes a run."""
     _train("wrinkle", dataset=dataset, out=out, device=device, epochs=epochs, batch_size=batch_size, hidden=hidden,
            dropout=dropout, lr=lr, window=window, features=features, split=split, test_shapes=test_shapes,
-           time_budget=time_budget, restart=restart, tensorboard=tensorboard, seed=seed, baselines=baselines,
+           time_budget=time_budget, restart=restart, tensorboard=tensorboard, seed=seed, baselines=not no_baselines,
            val_every=val_every, grad_clip=grad_clip, max_frames=max_frames, body=body)
 
 
@@ -722,15 +993,19 @@ def eval_garment_cmd(
     dataset: str = typer.Option(..., "--dataset", help="The dataset store the model was trained on."),
     out: Path = typer.Option(Path("simgen-eval"), "--out", help="Output folder (metrics.json and plots)."),
     device: str = typer.Option("cpu", "--device", help="Torch device for the predictions: cpu, cuda or cuda:N."),
-    timing: bool = typer.Option(True, "--timing/--no-timing", help="Measure ms per frame (CPU, and GPU if any)."),
-    timing_frames: int = typer.Option(100, "--timing-frames", help="Frames timed per configuration."),
-    inside_stride: int = typer.Option(5, "--inside-stride", help="Test every N-th frame for cloth inside the body."),
+    no_timing: bool = typer.Option(False, "--no-timing", help="Skip measuring ms per frame (CPU, and GPU if any)."),
+    _timing: bool = typer.Option(False, "--timing", hidden=True, help="The default (kept for old scripts)."),
+    timing_frames: int = typer.Option(100, "--timing-frames", help="Frames timed per configuration.",
+                                      rich_help_panel=EXPERT),
+    inside_stride: int = typer.Option(5, "--inside-stride", help="Test every N-th frame for cloth inside the body.",
+                                      rich_help_panel=EXPERT),
     max_frames: Optional[int] = _T_MAXF, body: Optional[str] = _T_BODY,
 ) -> None:
     """Errors vs LBS and linear regression (Figs. 4.6, 4.7), collisions, timing and size vs Table 4.1."""
     from simgen.learn._cli import run_eval_garment
 
-    run_eval_garment(model=model, dataset=dataset, out=out, device=device, timing=timing,
+    _warp_setup(device)
+    run_eval_garment(model=model, dataset=dataset, out=out, device=device, timing=not no_timing,
                      timing_frames=timing_frames, inside_stride=inside_stride, max_frames=max_frames, body=body,
                      echo=typer.echo, progress_factory=_progress)
 
@@ -745,28 +1020,33 @@ def eval_physics_cmd(
     lbs: bool = typer.Option(False, "--lbs", help="Also evaluate each sequence's LBS baseline (the garment skinned "
                              "with its weights) and compare incremental potentials frame by frame."),
     split: Optional[str] = typer.Option(None, "--split", help="Dataset stores: only this split (train or test)."),
-    material: Optional[str] = typer.Option(None, "--material", help="Material preset for the energies (default: the "
-                                           "one each sequence was simulated with)."),
-    contact: str = typer.Option("solver", "--contact", help="Collision term: 'solver' (the parameters the sequence "
-                                "was simulated with) or 'snug' (margin 2 mm, k = 250 J/m^3, power 3)."),
-    normalisation: str = typer.Option("frame", "--normalisation", help="frame (J per frame), vertex (J per vertex), "
-                                      "area (J per m^2 of garment) or snug (J per frame, gravity from the root joint)."),
+    material: Optional[str] = typer.Option(None, "--material", help="Material preset for the energies (list them: "
+                                           "`simgen material list`; default: the one each sequence was simulated "
+                                           "with)."),
+    contact: str = typer.Option("solver", "--contact", rich_help_panel=EXPERT,
+                                help="Collision term: 'solver' (the parameters the sequence was simulated with) or "
+                                     "'snug' (margin 2 mm, k = 250 J/m^3, power 3)."),
+    normalisation: str = typer.Option("frame", "--normalisation", rich_help_panel=EXPERT,
+                                      help="frame (J per frame), vertex (J per vertex), area (J per m^2 of garment) "
+                                           "or snug (J per frame, gravity from the root joint)."),
     body: str = typer.Option("open", "--body", help=BODY_HELP),
     frames: Optional[int] = typer.Option(None, "--frames", help="Use only the first N frames of each sequence."),
     max_sequences: Optional[int] = typer.Option(None, "--max-sequences", help="Dataset stores: at most N sequences."),
     device: Optional[str] = typer.Option(None, "--device", help="Torch device: cpu (default), cuda or cuda:N."),
-    bending_rest: str = typer.Option("template", "--bending-rest", help="Bending rest angle: template (the "
-                                     "solver's) or flat (SNUG's)."),
-    plot: bool = typer.Option(True, "--plot/--no-plot", help="Write the per-frame plot (needs matplotlib)."),
+    bending_rest: str = typer.Option("template", "--bending-rest", rich_help_panel=EXPERT,
+                                     help="Bending rest angle: template (the solver's) or flat (SNUG's)."),
+    no_plot: bool = typer.Option(False, "--no-plot", help="Skip the per-frame plot (it needs matplotlib)."),
+    _plot: bool = typer.Option(False, "--plot", hidden=True, help="The default (kept for old scripts)."),
 ) -> None:
     """SNUG's physics terms per frame (strain, bending, gravity, inertia, collision, share inside the body)."""
     from rich.console import Console
 
     from simgen.physics._cli import eval_physics
 
+    _warp_setup(device)
     summary = eval_physics(sources, out=out, lbs=lbs, split=split, material=material, contact=contact,
                            normalisation=normalisation, body=_load_body(body), frames=frames,
-                           max_sequences=max_sequences, device=device, plot=plot, bending_rest=bending_rest,
+                           max_sequences=max_sequences, device=device, plot=not no_plot, bending_rest=bending_rest,
                            progress_factory=_progress, console=Console())
     for kind, path in summary["files"].items():
         typer.echo(f"{kind}: {path}")
@@ -774,11 +1054,57 @@ def eval_physics_cmd(
         typer.echo(f"plot: {summary['plot']}")
 
 
+def _tidy_typer_help() -> None:
+    """Help pages without type noise.
+
+    Typer >= 0.20 writes every parameter's Python type in the help (``<str>``, ``<bool>`` on every
+    flag and on --help itself: ``TyperOption.display_type_rich`` in typer/core.py, from the
+    annotation when no metavar is given) and required arguments as ``{name}`` in the usage line
+    (``TyperArgument._usage_display_name``). Keep the types that tell something (``<int>``,
+    ``<float>``, ``<path>``), drop ``<str>``, ``<bool>`` and ``<list[...]>``, and write arguments the usual way:
+    ``NAME``, ``[NAME]``, ``NAME...``. A Typer without these hooks is left as it is.
+    """
+    try:
+        from typer.core import TyperArgument, TyperOption
+    except ImportError:  # pragma: no cover - typer without its own parameter classes
+        return
+    if getattr(TyperOption, "_simgen_tidy", False):
+        return
+
+    def quiet_types(original):
+        def display_type_rich(self, ctx):
+            annotation = getattr(getattr(self, "type_descriptor", None), "annotation", None)
+            if self.metavar is None and (getattr(self, "is_flag", False) or annotation in (str, bool)
+                                         or getattr(annotation, "__origin__", None) is list):
+                return ""  # a list argument is NAME... already
+            return original(self, ctx)
+
+        return display_type_rich
+
+    for cls in (TyperOption, TyperArgument):
+        if callable(getattr(cls, "display_type_rich", None)):
+            cls.display_type_rich = quiet_types(cls.display_type_rich)
+    if isinstance(getattr(TyperArgument, "display_name_raw", None), property):
+        TyperArgument.display_name_raw = property(lambda self: self.metavar or (self.name or "").upper())
+    if callable(getattr(TyperArgument, "_usage_display_name", None)):
+        def _usage_display_name(self) -> str:
+            name = self.display_name_raw if self.required else f"[{self.display_name_raw}]"
+            return name + ("..." if self.nargs != 1 else "")
+
+        TyperArgument._usage_display_name = _usage_display_name
+    TyperOption._simgen_tidy = True
+
+
+_tidy_typer_help()
+
+
 def main(argv: Optional[list[str]] = None) -> None:
     """Entry point: run the app, turning bad input into one sentence and exit code 2.
 
+    The command line goes through normalize_argv first (several values after one option).
     Usage errors are click's (exit 2 too); anything else is a bug and keeps its traceback.
     """
+    argv = normalize_argv(sys.argv[1:] if argv is None else argv)
     try:
         app(args=argv, prog_name="simgen")
     except InputError as exc:

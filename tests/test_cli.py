@@ -69,6 +69,9 @@ def test_every_command_has_help(path, capsys):
         (["demo", "--garment", "no_such_garment"], "no_such_garment"),
         (["export", "usd", "--motion", "walk", "--out", "body.txt"], "body.txt"),
         (["motion", "list", "--split", "validation"], "--split"),
+        # Values as separate words end in simgen's sentence too, not in Typer's "extra argument" box.
+        (["demo", "--betas", "1", "x"], "--betas"),
+        (["demo", "--betas", *["0.5"] * 11], "11 values"),
     ],
 )
 def test_bad_input_is_one_sentence_exit_2_nothing_written(argv, needle, capsys, tmp_path, monkeypatch):
@@ -285,3 +288,222 @@ def test_simulate_bad_material_exit_2(capsys, tmp_path):
                              "--out", str(tmp_path / "s")], capsys)
     assert code == 2 and "kevlar" in err
     assert not (tmp_path / "s").exists()
+
+
+# ------------------------------------------------------------------------------------ CLI conventions
+@pytest.mark.parametrize(
+    "argv, expected",
+    [
+        (["body", "info", "--betas", "1", "2", "3"], ["body", "info", "--betas", "1,2,3"]),
+        (["body", "info", "--betas", "1,2,3"], ["body", "info", "--betas", "1,2,3"]),
+        (["body", "info", "--betas", "-1", "0.5", "--json"], ["body", "info", "--betas", "-1,0.5", "--json"]),
+        (["body", "info", "--betas", "0.5", "-1e-1", "-2"], ["body", "info", "--betas", "0.5,-1e-1,-2"]),
+        (["body", "info", "--betas=1", "-2"], ["body", "info", "--betas=1,-2"]),
+        # A word that is not a number still joins, so parse_betas names it in one sentence.
+        (["body", "info", "--betas", "1", "x"], ["body", "info", "--betas", "1,x"]),
+        # Required arguments get their words back.
+        (["garment", "preview", "--betas", "1", "2", "tshirt_1k", "--frames", "2"],
+         ["garment", "preview", "--betas", "1,2", "tshirt_1k", "--frames", "2"]),
+        (["dataset", "generate", "--motions", "walk", "run", "tiny", "--out", "d"],
+         ["dataset", "generate", "--motions", "walk,run", "tiny", "--out", "d"]),
+        (["dataset", "generate", "tiny", "--motions", "walk", "run", "--shapes", "zero", "b0p2", "--dry-run"],
+         ["dataset", "generate", "tiny", "--motions", "walk,run", "--shapes", "zero,b0p2", "--dry-run"]),
+        (["train", "fit", "--test-shapes", "a", "b", "--dataset", "d", "--out", "o"],
+         ["train", "fit", "--test-shapes", "a,b", "--dataset", "d", "--out", "o"]),
+        # Values of other options are not mistaken for arguments, --verbose moves to the front,
+        # and command lines Typer must reject stay as they are.
+        (["dataset", "generate", "--out", "d", "--motions", "walk", "tiny"],
+         ["dataset", "generate", "--out", "d", "--motions", "walk", "tiny"]),
+        (["demo", "--verbose", "--seconds", "1"], ["--verbose", "demo", "--seconds", "1"]),
+        (["no_such_command", "--betas", "1", "2"], ["no_such_command", "--betas", "1", "2"]),
+        (["--help"], ["--help"]),
+    ],
+)
+def test_normalize_argv(argv, expected):
+    from simgen.cli import normalize_argv
+
+    assert normalize_argv(argv) == expected
+
+
+@pytest.mark.parametrize("words, joined", [(["1", "2", "3"], "1,2,3"), (["-1", "0.5"], "-1,0.5")])
+def test_betas_as_words_and_comma_separated_are_the_same(words, joined, capsys):
+    code, spaced, err = run_main(["body", "info", "--json", "--betas", *words], capsys)
+    assert code == 0, err
+    code, commas, err = run_main(["body", "info", "--json", "--betas", joined], capsys)
+    assert code == 0, err
+    assert json.loads(spaced) == json.loads(commas)
+    assert json.loads(spaced) != json.loads(run_main(["body", "info", "--json"], capsys)[1])
+
+
+def test_version(capsys):
+    from simgen import __version__
+
+    code, out, _ = run_main(["--version"], capsys)
+    assert code == 0 and out == f"simgen {__version__}\n"
+
+
+def test_verbose_is_a_global_option(capsys):
+    from simgen import _warp_log
+
+    try:
+        for argv in (["--verbose", "motion", "list", "--json"], ["motion", "list", "--json", "--verbose"]):
+            code, out, err = run_main(argv, capsys)
+            assert code == 0, err
+            assert json.loads(out) and _warp_log.is_verbose()
+        assert run_main(["motion", "list", "--json"], capsys)[0] == 0
+        assert not _warp_log.is_verbose()
+    finally:
+        _warp_log.set_verbose(False)
+
+
+def test_completion_options_exist(capsys):
+    code, out, _ = run_main(["--help"], capsys)
+    assert code == 0 and "--install-completion" in out and "--show-completion" in out
+
+
+def _description_widths(page: str) -> list[int]:
+    """Widths of the description column in a rich help page, read off the wrapped lines of each
+    panel (a line whose option columns are empty and whose description continues)."""
+    widths = []
+    for line in page.splitlines():
+        if line.startswith("│") and line.endswith("│"):
+            inner = line[1:-1]
+            lead = len(inner) - len(inner.lstrip())
+            if inner.strip() and lead >= 8:
+                widths.append(len(inner) - lead)
+    return widths
+
+
+def test_simulate_help_is_readable_at_80_columns():
+    env = dict(os.environ, COLUMNS="80", TERMINAL_WIDTH="80")
+    page = subprocess.run([sys.executable, "-m", "simgen.cli", "simulate", "--help"], env=env, capture_output=True,
+                          text=True, check=True).stdout
+    assert max(len(line) for line in page.splitlines()) <= 80
+    assert "<bool>" not in page and "<str>" not in page and "{" not in page
+    # Solver internals in their own panel, after the everyday options.
+    assert "Expert options" in page and page.index("--garment") < page.index("Expert options")
+    for flag in ("--substeps", "--newton-iterations", "--strain-limit", "--constraint-rounds", "--self-contact"):
+        assert page.index("Expert options") < page.index(flag)
+    words = " ".join(page.replace("│", " ").split())  # help texts wrap over lines
+    assert "simgen motion list" in words and "simgen garment list" in words and "simgen material list" in words
+    widths = _description_widths(page)
+    assert widths and min(widths) >= 38, widths  # was 20 (squeezed by the option columns)
+
+
+@pytest.mark.parametrize("path", all_command_paths(), ids=lambda p: " ".join(p) or "simgen")
+def test_every_help_is_readable_at_80_columns(path, capsys, monkeypatch):
+    monkeypatch.setenv("COLUMNS", "80")
+    code, page, _ = run_main(path + ["--help"], capsys)
+    assert code == 0
+    for noise in ("<bool>", "<str>", "{"):
+        assert noise not in page
+    assert all(w >= 38 for w in _description_widths(page)), page
+
+
+def test_every_name_option_says_which_command_lists_the_names():
+    import typer.main
+
+    listing = {"garment": "simgen garment list", "motion": "simgen motion list", "motions": "simgen motion list",
+               "material": "simgen material list", "spec": "simgen dataset presets"}
+    root = typer.main.get_command(app)
+    checked = []
+
+    def walk(cmd, prefix):
+        for param in getattr(cmd, "params", []):
+            name = "garment" if prefix[:1] == ["garment"] and param.name == "name" and prefix[1:] in (
+                ["preview"], ["check"]) else param.name
+            if name in listing:
+                checked.append(" ".join(prefix + [param.name]))
+                assert listing[name] in (param.help or ""), (prefix, param.name)
+        for sub_name, sub in getattr(cmd, "commands", {}).items():
+            walk(sub, prefix + [sub_name])
+
+    walk(root, [])
+    assert "simulate garment" in checked and "demo motion" in checked and "dataset generate spec" in checked
+
+
+@pytest.mark.parametrize("listing", [["material", "list", "--json"], ["dataset", "presets", "--json"]])
+def test_listing_commands(listing, capsys):
+    code, out, err = run_main(listing, capsys)
+    assert code == 0, err
+    names = {row["name"] for row in json.loads(out)}
+    assert {"cotton", "silk"} <= names if listing[0] == "material" else {"tiny", "thesis-tshirt"} <= names
+
+
+def test_progress_writes_a_line_per_ten_percent_when_not_a_terminal():
+    import io
+
+    from simgen.cli import _note, _progress
+
+    stream = io.StringIO()
+    progress, update = _progress("simulating", 20, stream=stream)
+    with progress:
+        _note(progress, "compiling kernels")
+        for done in range(1, 21):
+            update(done)
+    lines = stream.getvalue().splitlines()
+    assert lines[0] == "compiling kernels"
+    assert [line.split(": ")[1].split(" ")[0] for line in lines[1:]] == [f"{p}%" for p in range(10, 101, 10)]
+    assert all(line.startswith("simulating: ") for line in lines[1:])
+    # A total given with the update counts; a terminal gets rich's bar instead.
+    stream = io.StringIO()
+    progress, update = _progress("rendering", 1, stream=stream)
+    update(3, 4)
+    assert stream.getvalue().startswith("rendering: 70% (3/4")
+
+    class Terminal(io.StringIO):
+        def isatty(self):
+            return True
+
+    from rich.progress import Progress
+
+    assert isinstance(_progress("x", 3, stream=Terminal())[0], Progress)
+
+
+_FAKE_WARP_INIT = """
+import os, warp
+def fake_init():
+    os.write(2, b"Warp CUDA warning: Could not find or load the NVIDIA CUDA driver.\\n")
+    os.write(2, b"Warp CUDA error: something real\\n")
+warp.init = fake_init
+from simgen._warp_log import init_warp, set_verbose
+set_verbose({verbose})
+init_warp({device!r})
+"""
+
+
+@pytest.mark.parametrize("device, verbose, shown", [("cpu", False, False), (None, False, False),
+                                                    ("cuda", False, True), ("cpu", True, True)])
+def test_init_warp_drops_only_the_cuda_driver_warning(device, verbose, shown):
+    code = _FAKE_WARP_INIT.format(device=device, verbose=verbose)
+    err = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stderr
+    assert "something real" in err
+    assert ("Could not find or load the NVIDIA CUDA driver" in err) == shown
+
+
+def test_init_warp_is_quiet():
+    """The real Warp: no banner on stdout, no CUDA driver warning on stderr."""
+    result = subprocess.run([sys.executable, "-c", "from simgen._warp_log import init_warp; init_warp('cpu')"],
+                            capture_output=True, text=True, check=True)
+    assert "Warp" not in result.stdout
+    assert "NVIDIA CUDA driver" not in result.stderr
+
+
+def test_compile_notice_only_when_warp_compiles(tmp_path):
+    script = tmp_path / "tiny_kernel.py"
+    script.write_text(
+        "import warp as wp\n"
+        "from simgen._warp_log import compile_notice, init_warp\n"
+        "init_warp('cpu')\n"
+        "@wp.kernel\n"
+        "def double(a: wp.array(dtype=float)):\n"
+        "    i = wp.tid()\n"
+        "    a[i] = 2.0 * a[i]\n"
+        "with compile_notice(lambda: print('NOTICE', flush=True)):\n"
+        "    wp.launch(double, dim=3, inputs=[wp.ones(3, dtype=float, device='cpu')], device='cpu')\n"
+        "    wp.launch(double, dim=3, inputs=[wp.ones(3, dtype=float, device='cpu')], device='cpu')\n")
+    env = dict(os.environ, WARP_CACHE_PATH=str(tmp_path / "cache"))
+    first = subprocess.run([sys.executable, str(script)], env=env, capture_output=True, text=True, check=True).stdout
+    again = subprocess.run([sys.executable, str(script)], env=env, capture_output=True, text=True, check=True).stdout
+    assert first.count("NOTICE") == 1  # once, though the module loads on both launches
+    assert "NOTICE" not in again  # cached
