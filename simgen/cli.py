@@ -987,6 +987,58 @@ def train_wrinkle_cmd(
            val_every=val_every, grad_clip=grad_clip, max_frames=max_frames, body=body)
 
 
+@train_app.command("snug")
+def train_snug_cmd(
+    garment: str = typer.Option(..., "--garment", help=GARMENT_HELP),
+    out: Path = typer.Option(..., "--out", help="Model folder (the model goes to OUT/snug/)."),
+    motions: Optional[str] = typer.Option(None, "--motions", help="Library clips (`simgen motion list`) or motion "
+                                          "files (AMASS .npz, BVH), 'a,b' or 'a b' (default: the library's train "
+                                          "split and your imports)."),
+    device: str = _T_DEVICE, time_budget: Optional[float] = _T_BUDGET, restart: bool = _T_RESTART,
+    body: Optional[str] = typer.Option(None, "--body", help=BODY_HELP),
+    physics: Optional[str] = typer.Option(None, "--physics", help="Material and contact of the loss: a dataset "
+                                          "preset (default thesis-tshirt; `simgen dataset presets`) or 'snug' (the "
+                                          "thesis's SNUG values)."),
+    no_strain: bool = typer.Option(False, "--no-strain", help="Ablation: drop the strain term."),
+    no_bending: bool = typer.Option(False, "--no-bending", help="Ablation: drop the bending term."),
+    no_gravity: bool = typer.Option(False, "--no-gravity", help="Ablation: drop the gravity term."),
+    no_inertia: bool = typer.Option(False, "--no-inertia", help="Ablation: drop the inertia term."),
+    no_collision: bool = typer.Option(False, "--no-collision", help="Ablation: drop the collision term."),
+    epochs: Optional[int] = typer.Option(None, "--epochs", help="Most epochs (200; it stops at convergence)."),
+    batch_size: Optional[int] = typer.Option(None, "--batch-size", help="Windows per step (16).",
+                                             rich_help_panel=EXPERT),
+    lr: Optional[float] = typer.Option(None, "--lr", help="Adam learning rate of the first epochs (1e-3).",
+                                       rich_help_panel=EXPERT),
+    hidden: Optional[int] = typer.Option(None, "--hidden", help="Units per GRU layer (256).", rich_help_panel=EXPERT),
+    features: Optional[str] = typer.Option(None, "--features", help="Motion descriptor: pose_velocity (default) or "
+                                           "pose.", rich_help_panel=EXPERT),
+    seed: Optional[int] = typer.Option(None, "--seed", help="Random seed (0)."),
+) -> None:
+    """Train SNUG (thesis ch. 5): a GRU garment model trained with the physics terms alone, no simulated data.
+
+    Writes OUT/snug/ (model.pt, config.json, log.csv, train_state.pt) and resumes a run found there.
+    """
+    from dataclasses import replace
+
+    from simgen.learn.snug import SnugConfig, train_snug
+
+    _warp_setup(device if device.startswith("cuda") else "cpu")  # the collision term's body query runs in Warp
+    given = {"physics": physics, "epochs": epochs, "batch_size": batch_size, "lr": lr, "hidden": hidden,
+             "feature_mode": features, "seed": seed}
+    config = replace(SnugConfig(), **{k: v for k, v in given.items() if v is not None},
+                     strain=not no_strain, bending=not no_bending, gravity=not no_gravity, inertia=not no_inertia,
+                     collision=not no_collision)
+    clips = [m.strip() for m in motions.split(",") if m.strip()] if motions else None
+    progress, update = _progress(f"training SNUG ({garment})", config.epochs)
+    with progress:
+        result = train_snug(garment, out, motions=clips, config=config, device=device, time_budget=time_budget,
+                            resume=not restart, body=_load_body(body) if body else None,
+                            progress=lambda done, total, info: update(int(done), total))
+    typer.echo(f"SNUG: {result.epochs} epochs, stopped: {result.stopped}, train loss {result.train_loss:.4g} J/frame"
+               + ("" if result.val_loss is None else f", validation {result.val_loss:.4g} J/frame"))
+    typer.echo(f"model: {result.folder}")
+
+
 @eval_app.command("garment")
 def eval_garment_cmd(
     model: Path = typer.Option(..., "--model", help="Trained model folder (`simgen train fit|wrinkle --out`)."),

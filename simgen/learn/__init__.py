@@ -10,6 +10,12 @@
     pred = model.predict(betas, poses, trans, fps)             # pred.vertices (T, V, 3) [m]
     metrics = evaluate_garment("runs/tshirt", data, "runs/tshirt/eval")
 
+SNUG (thesis ch. 5), self-supervised, no dataset:
+
+    train_snug("tshirt", "runs/snug")                          # -> runs/snug/snug/
+    model = load_snug_model("runs/snug")                       # the SNUG model (thesis ch. 5)
+    pred = model.rollout(load_motion("walk_fast"), betas)      # pred.vertices (T, V, 3) [m]
+
 See docs/learn.md for the choices made where the thesis is silent and where we depart from it.
 """
 
@@ -25,6 +31,8 @@ from simgen.learn.models import GarmentFitMLP, GarmentTemplate, LinearRegressor,
 from simgen.learn.skinning import inverse_lbs_torch, lbs_torch
 from simgen.learn.train import (FitConfig, TrainResult, WrinkleConfig, fit_linear_baselines, save_template,
                                 train_fit, train_wrinkle)
+from simgen.learn.snug import (SnugConfig, SnugModel, SnugNet, SnugResult, load_snug_model, snug_tracks, train_snug,
+                               window_loss)
 
 __all__ = [
     "GarmentFitMLP", "WrinkleGRU", "LinearRegressor", "GarmentTemplate", "GarmentModel", "Prediction",
@@ -35,4 +43,5 @@ __all__ = [
     "time_inference", "THESIS", "save_model", "load_model", "read_config", "check_identity", "model_size_mb",
     "CollisionSurface", "push_out", "DEFAULT_CLEARANCE", "FEATURE_MODES",
     "feature_size", "motion_features", "lbs_torch", "inverse_lbs_torch",
+    "SnugConfig", "SnugModel", "SnugNet", "SnugResult", "train_snug", "load_snug_model", "snug_tracks", "window_loss",
 ]

@@ -129,7 +129,8 @@ def run_export_compare(*, out: Path, model: Path | None, dataset: str | None, se
     from simgen.io.usd import write_usd
     from simgen.learn.compare import compare_tracks
     from simgen.learn.data import body_for_identity, load_garment_data
-    from simgen.learn.garment_model import load_garment_model, load_split
+    from simgen.learn.garment_model import FIT_DIR, load_garment_model, load_split
+    from simgen.learn.snug import SNUG_DIR
 
     if model is None or dataset is None:
         raise InputError("--compare needs --model DIR (a trained model folder) and --dataset DIR (its dataset store)")
@@ -147,8 +148,10 @@ def run_export_compare(*, out: Path, model: Path | None, dataset: str | None, se
             raise InputError(f"dataset {dataset} holds no sequence")
         sequence = sorted(held)[0]
     data = load_garment_data(dataset, body=model_body, sequence_ids=[sequence], max_frames=frames)
-    garment_model = load_garment_model(model, identity=data.identity,
-                                       body=body_for_identity(data.identity, model_body))
+    loader = load_garment_model
+    if (Path(model) / SNUG_DIR).is_dir() and not (Path(model) / FIT_DIR).is_dir():
+        from simgen.learn.snug import load_snug_model as loader  # a SNUG folder (`simgen train snug`)
+    garment_model = loader(model, identity=data.identity, body=body_for_identity(data.identity, model_body))
     progress, update = progress_factory(f"comparing on {sequence}", 1)
     with progress:
         tracks, meta, fps = compare_tracks(garment_model, data, sequence, frames=frames)
