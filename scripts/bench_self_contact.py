@@ -5,10 +5,10 @@ with a preset's solver settings (default thesis-tshirt), through :func:`simgen.s
 once without and once with self-contact (repulsion + impact filter). Per run: wall time, the
 stepping time per output frame (first and last tenth of the clip), output frames with crossing
 edges, the deepest regular vertex inside the body. ``--variants`` runs self-contact with other
-parameters too (``thickness=3e-3,stiffness=1e5``: fields of SelfContactParams). With ``--profile``
-the first self-contact run is repeated without CUDA graphs and every call is synchronised and timed: the impact filter's ms per
-substep and its rounds, by quarter of the run, and how many substeps moved a whole garment as one
-zone.
+parameters too (``thickness=3e-3,stiffness=1e5``: fields of SelfContactParams); ``--cg-iterations``
+overrides the preset's PCG cap. With ``--profile`` the first self-contact run is repeated without
+CUDA graphs and every call is synchronised and timed: the impact filter's ms per substep and its
+rounds, by quarter of the run, and how many substeps moved a whole garment as one zone.
 
     python scripts/bench_self_contact.py --device cuda:0 --garment tshirt --motion run -n 16 --frames 90 \\
         --profile --out sc.json
@@ -104,7 +104,8 @@ def main() -> None:
     out = {"device": wp.get_device(cfg.device).name, "commit": commit(), "preset": a.preset, "garment": a.garment,
            "vertices": len(garment.vertices), "motion": a.motion, "instances": a.n, "frames": a.frames,
            "cg_iterations": cfg.solver.cg_iterations, "runs": {}}
-    runs = [("self_contact", SelfContactParams())] if a.skip_none else [("none", None), ("self_contact", SelfContactParams())]
+    runs = [] if a.skip_none else [("none", None)]
+    runs.append(("self_contact", SelfContactParams()))
     for text in a.variants:
         fields = dict(item.split("=") for item in text.split(","))
         runs.append((f"self_contact {text}", SelfContactParams(**{k: type(getattr(SelfContactParams(), k))(float(v))
