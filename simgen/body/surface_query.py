@@ -267,8 +267,8 @@ def contact_funcs(scalar) -> SimpleNamespace:
                     s = wp.clamp((b - c) / a, zero, one)
         return s, t
 
-    return SimpleNamespace(closest_point_triangle=closest_point_triangle, closest_points_segments=closest_points_segments,
-                           closest_face=closest_face,
+    return SimpleNamespace(closest_point_triangle=closest_point_triangle,
+                           closest_points_segments=closest_points_segments, closest_face=closest_face,
                            face_distance=face_distance, body_distance=body_distance, part_distance=part_distance,
                            body_contact=body_contact, held_contact=held_contact)
 

@@ -139,7 +139,8 @@ def impact_kernels(scalar) -> SimpleNamespace:
 
     @wp.func
     def record(parent: wp.array(dtype=wp.int32), whole: wp.array(dtype=wp.int32), last: int, inst: int,
-               i0: int, i1: int, i2: int, i3: int, impacts: wp.array(dtype=wp.int32), pending: wp.array(dtype=wp.int32)):
+               i0: int, i1: int, i2: int, i3: int, impacts: wp.array(dtype=wp.int32),
+               pending: wp.array(dtype=wp.int32)):
         pending[0] = 1
         wp.atomic_add(impacts, inst, 1)
         if last != 0:
@@ -173,9 +174,9 @@ def impact_kernels(scalar) -> SimpleNamespace:
     @wp.kernel(enable_backward=False, module=mod)
     def vertex_triangle(x0: wp.array(dtype=vec3), x1: wp.array(dtype=vec3), triangles: wp.array(dtype=wp.int32, ndim=2),
                         vertex_instance: wp.array(dtype=wp.int32), offsets: wp.array(dtype=wp.vec3), bvh: wp.uint64,
-                        pad: float, round_index: wp.array(dtype=wp.int32), rounds: int, parent: wp.array(dtype=wp.int32),
-                        whole: wp.array(dtype=wp.int32), impacts: wp.array(dtype=wp.int32),
-                        pending: wp.array(dtype=wp.int32)):
+                        pad: float, round_index: wp.array(dtype=wp.int32), rounds: int,
+                        parent: wp.array(dtype=wp.int32), whole: wp.array(dtype=wp.int32),
+                        impacts: wp.array(dtype=wp.int32), pending: wp.array(dtype=wp.int32)):
         i = wp.tid()
         last = int(round_index[0] >= rounds - 1)
         inst = vertex_instance[i]
@@ -197,7 +198,8 @@ def impact_kernels(scalar) -> SimpleNamespace:
     def edge_edge(x0: wp.array(dtype=vec3), x1: wp.array(dtype=vec3), edges: wp.array(dtype=wp.int32, ndim=2),
                   vertex_instance: wp.array(dtype=wp.int32), offsets: wp.array(dtype=wp.vec3), bvh: wp.uint64,
                   pad: float, round_index: wp.array(dtype=wp.int32), rounds: int, parent: wp.array(dtype=wp.int32),
-                  whole: wp.array(dtype=wp.int32), impacts: wp.array(dtype=wp.int32), pending: wp.array(dtype=wp.int32)):
+                  whole: wp.array(dtype=wp.int32), impacts: wp.array(dtype=wp.int32),
+                  pending: wp.array(dtype=wp.int32)):
         e = wp.tid()
         last = int(round_index[0] >= rounds - 1)
         a = edges[e, 0]
@@ -221,7 +223,8 @@ def impact_kernels(scalar) -> SimpleNamespace:
 
     @wp.kernel(enable_backward=False, module=mod)
     def zone_sums(x0: wp.array(dtype=vec3), target: wp.array(dtype=vec3), target_v: wp.array(dtype=vec3),
-                  mass: wp.array(dtype=scalar), pinned: wp.array(dtype=wp.int32), vertex_instance: wp.array(dtype=wp.int32),
+                  mass: wp.array(dtype=scalar), pinned: wp.array(dtype=wp.int32),
+                  vertex_instance: wp.array(dtype=wp.int32),
                   instance_root: wp.array(dtype=wp.int32), whole: wp.array(dtype=wp.int32),
                   parent: wp.array(dtype=wp.int32), zone: wp.array(dtype=wp.int32), size: wp.array(dtype=wp.int32),
                   weight: wp.array(dtype=scalar), motion: wp.array(dtype=vec3), velocity: wp.array(dtype=vec3)):
