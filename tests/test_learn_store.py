@@ -126,3 +126,20 @@ def test_a_model_for_another_garment_is_refused(store, data, tmp_path, capsys):
     assert code == 2
     assert "trained for garment 'dress_1k'" in err and "not for 'tshirt_1k'" in err
     assert "Traceback" not in err
+
+
+def test_a_snug_model_plays_beside_the_simulation(store, tmp_path, capsys):
+    # A SNUG folder (snug/, no fit/) is read as SNUG by `export usd --compare`: its prediction sits
+    # beside the ground truth and LBS like the supervised model's.
+    from simgen.learn.snug import SnugConfig, train_snug
+
+    config = SnugConfig(hidden=16, layers=1, batch_size=2, window_stride=90, val_windows=0, epochs=1)
+    train_snug("tshirt_1k", tmp_path / "snug_model", motions=["walk"], config=config)
+    usd = tmp_path / "snug.usdc"
+    code, out, err = run(["export", "usd", "--compare", "--model", str(tmp_path / "snug_model"), "--dataset",
+                          str(store), "--out", str(usd)], capsys)
+    assert code == 0, err
+    from simgen.io.usd import read_usd_meshes
+
+    meshes = read_usd_meshes(usd)
+    assert "garment_ours" in meshes and meshes["garment_ours"].num_frames == 5
