@@ -507,3 +507,16 @@ def test_compile_notice_only_when_warp_compiles(tmp_path):
     again = subprocess.run([sys.executable, str(script)], env=env, capture_output=True, text=True, check=True).stdout
     assert first.count("NOTICE") == 1  # once, though the module loads on both launches
     assert "NOTICE" not in again  # cached
+
+
+def test_the_plain_dataset_entry_takes_names_as_words_or_comma_separated(capsys):
+    # `python -m simgen.dataset` (argparse, for the device machine) plans the same subset either way.
+    from simgen.dataset._cli import main as plain_main
+
+    plans = []
+    for extra in (["--motions", "walk", "run", "--shapes", "zero", "b1p2"],
+                  ["--motions", "walk,run", "--shapes", "zero,b1p2"]):
+        assert plain_main(["generate", "tiny", "--dry-run", *extra]) == 0
+        plans.append(capsys.readouterr().out)
+    assert plans[0] == plans[1] and json.loads(plans[0])[0]["motions"] == 2
+    assert plain_main(["generate", "tiny", "--dry-run", "--motions", "no_such_clip"]) == 2

@@ -190,6 +190,11 @@ def _fmt(v, f):
     return "-" if v is None else format(v, f)
 
 
+def _names(words):
+    """Names given as words and/or comma-separated ("a,b c" -> [a, b, c]); None when not given."""
+    return None if not words else [n for w in words for n in w.split(",") if n]
+
+
 def main(argv=None) -> int:
     """``python -m simgen.dataset generate|check|plan ...`` without typer/rich (for the device machine)."""
     import argparse
@@ -203,8 +208,8 @@ def main(argv=None) -> int:
     g.add_argument("--batch-size", type=int)
     g.add_argument("--substeps", type=int)
     g.add_argument("--max-frames", type=int)
-    g.add_argument("--motions")
-    g.add_argument("--shapes")
+    g.add_argument("--motions", nargs="+", help="'a,b' or 'a b'")
+    g.add_argument("--shapes", nargs="+", help="'a,b' or 'a b'")
     g.add_argument("--max-sequences", type=int)
     g.add_argument("--time-budget", type=float)
     g.add_argument("--report")
@@ -228,8 +233,7 @@ def main(argv=None) -> int:
                                 report=a.report, dry_run=a.dry_run,
                                 overrides=dict(device=a.device, batch_size=a.batch_size, substeps=a.substeps,
                                                max_frames=a.max_frames,
-                                               motions=a.motions.split(",") if a.motions else None,
-                                               shapes=a.shapes.split(",") if a.shapes else None))
+                                               motions=_names(a.motions), shapes=_names(a.shapes)))
         if a.cmd == "pack":
             from simgen.dataset.export import pack_sequences
 
