@@ -187,3 +187,12 @@ def test_train_snug_command_writes_a_model_it_can_resume(tmp_path):
     assert second.exit_code == 0, second.output
     assert len(_rows(tmp_path / "snug")) == 1  # resumed: nothing left to train
     assert load_snug_model(tmp_path).net is not None
+
+
+@pytest.mark.parametrize("kwargs", [{"garment": "no_such_garment"}, {"motions": ["no_such_clip"]},
+                                    {"config": replace(TINY, physics="no_such_preset")}])
+def test_bad_input_is_one_sentence_and_writes_nothing(tmp_path, kwargs):
+    args = {"garment": GARMENT, **kwargs}
+    with pytest.raises(InputError, match="no_such"):
+        train_snug(args.pop("garment"), tmp_path / "out", **args)
+    assert not (tmp_path / "out").exists()

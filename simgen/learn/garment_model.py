@@ -96,7 +96,37 @@ class StreamState:
     previous: tuple[torch.Tensor, torch.Tensor] | None = None
 
 
-class GarmentModel(nn.Module):
+class BodyCollision(nn.Module):
+    """What a garment model needs of the body at inference: the torch body (``body``), its collision
+    surface (``surface``, kept on the module's device) and the post-process clearance [m]."""
+
+    def __init__(self, body, clearance: float = DEFAULT_CLEARANCE):
+        super().__init__()
+        from simgen.body.torch_lbs import TorchBody
+
+        self.body = TorchBody(body)
+        self.surface = CollisionSurface(body.faces, body.v_template)
+        self.clearance = float(clearance)
+
+    def _apply(self, fn, recurse=True):
+        out = super()._apply(fn, recurse)
+        self.surface.to(self.body.v_template.device)
+        return out
+
+    def push_out_sequence(self, raw: torch.Tensor, betas: torch.Tensor, poses: torch.Tensor, trans: torch.Tensor,
+                          chunk: int = 256):
+        """The collision post-process over a sequence, ``chunk`` frames at a time: raw garment [m]
+        (T, V, 3), betas (T, B), poses (T, 24, 3), trans (T, 3) -> (pushed-out vertices [m]
+        (T, V, 3), moved (T, V) bool)."""
+        out, moved = torch.empty_like(raw), torch.empty(raw.shape[:2], dtype=torch.bool, device=raw.device)
+        for s in range(0, len(raw), chunk):
+            sl = slice(s, s + chunk)
+            bv = self.body(betas[sl], poses[sl], trans[sl])[0]
+            out[sl], moved[sl] = push_out(raw[sl], bv, self.surface, clearance=self.clearance)
+        return out, moved
+
+
+class GarmentModel(BodyCollision):
     """T_c + R_G + R_L skinned with the garment's weights, then the collision post-process.
 
     template: :class:`GarmentTemplate`; fit: R_G; wrinkle: R_L (None: fit only); body: the
@@ -105,23 +135,13 @@ class GarmentModel(nn.Module):
 
     def __init__(self, template: GarmentTemplate, fit: GarmentFitMLP, wrinkle: WrinkleGRU | None, body, *,
                  clearance: float = DEFAULT_CLEARANCE):
-        super().__init__()
-        from simgen.body.torch_lbs import TorchBody
-
+        super().__init__(body, clearance)
         if fit.num_vertices != template.num_vertices or (wrinkle is not None
                                                          and wrinkle.num_vertices != template.num_vertices):
             raise InputError(f"the fit/wrinkle models predict {fit.num_vertices} vertices but the garment template "
                              f"has {template.num_vertices}")
         self.template, self.fit, self.wrinkle = template, fit, wrinkle
-        self.body = TorchBody(body)
-        self.surface = CollisionSurface(body.faces, body.v_template)
-        self.clearance = float(clearance)
         self.eval()
-
-    def _apply(self, fn, recurse=True):
-        out = super()._apply(fn, recurse)
-        self.surface.to(self.body.v_template.device)
-        return out
 
     @property
     def device(self) -> torch.device:
@@ -156,11 +176,7 @@ class GarmentModel(nn.Module):
         raw = lbs_torch(rest[0], self.template.skin_weights, a)
         if not postprocess:
             return Prediction(raw, raw, None, a)
-        out, moved = torch.empty_like(raw), torch.empty(raw.shape[:2], dtype=torch.bool, device=raw.device)
-        for s in range(0, len(raw), chunk):
-            sl = slice(s, s + chunk)
-            bv = self.body(betas[sl], poses[sl], trans[sl])[0]
-            out[sl], moved[sl] = push_out(raw[sl], bv, self.surface, clearance=self.clearance)
+        out, moved = self.push_out_sequence(raw, betas, poses, trans, chunk)
         return Prediction(out, raw, moved, a)
 
     @torch.no_grad()

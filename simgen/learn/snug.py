@@ -41,9 +41,9 @@ from simgen._fileio import atomic_write_bytes
 from simgen.errors import InputError
 from simgen.settings import setting, validate
 from simgen.learn.checkpoint import load_model, save_model
-from simgen.learn.collision import DEFAULT_CLEARANCE, CollisionSurface, push_out
+from simgen.learn.collision import DEFAULT_CLEARANCE
 from simgen.learn.features import FEATURE_MODES, feature_size, motion_features
-from simgen.learn.garment_model import Prediction, joint_transforms
+from simgen.learn.garment_model import BodyCollision, Prediction, joint_transforms
 from simgen.learn.models import INPUT_STD_FLOOR, MODEL_KINDS, GarmentTemplate
 from simgen.learn.skinning import lbs_torch
 from simgen.learn.train import STATE_FILE, _device, _load_state, _Logger
@@ -261,7 +261,7 @@ class SnugNet(nn.Module):
 MODEL_KINDS[SnugNet.kind] = SnugNet  # so that checkpoint.load_model reads "snug" folders
 
 
-class SnugModel(nn.Module):
+class SnugModel(BodyCollision):
     """A trained SNUG garment ready for inference: :class:`SnugNet` + the body (TorchBody).
 
     fps [1/s]: the frame rate it was trained at (clips are resampled to it by :meth:`rollout`);
@@ -271,17 +271,9 @@ class SnugModel(nn.Module):
     """
 
     def __init__(self, net: SnugNet, body, *, fps: float = 30.0, clearance: float = DEFAULT_CLEARANCE):
-        super().__init__()
-        from simgen.body.torch_lbs import TorchBody
-
-        self.net, self.body, self.fps, self.clearance = net, TorchBody(body), float(fps), float(clearance)
-        self.surface = CollisionSurface(body.faces, body.v_template)
+        super().__init__(body, clearance)
+        self.net, self.fps = net, float(fps)
         self.eval()
-
-    def _apply(self, fn, recurse=True):
-        out = super()._apply(fn, recurse)
-        self.surface.to(self.body.v_template.device)
-        return out
 
     @property
     def template(self) -> GarmentTemplate:
@@ -308,8 +300,7 @@ class SnugModel(nn.Module):
         raw = self.net.posed(unposed[0], a)
         if not postprocess:
             return Prediction(raw, raw, None, a)
-        bv = self.body(betas, poses, trans)[0]
-        out, moved = push_out(raw, bv, self.surface, clearance=self.clearance)
+        out, moved = self.push_out_sequence(raw, betas, poses, trans)
         return Prediction(out, raw, moved, a)
 
     def rollout(self, clip, betas=None, *, postprocess: bool = False) -> Prediction:
@@ -582,9 +573,9 @@ def train_snug(garment: str, out: str | Path, *, motions: list[str] | None = Non
     config = config or SnugConfig()
     config.check()
     dev = _device(device)
+    run = _Run(garment, motions, config, dev, body)  # checks garment, motions and physics: nothing written yet
     folder = Path(out) / SNUG_DIR
     folder.mkdir(parents=True, exist_ok=True)
-    run = _Run(garment, motions, config, dev, body)
     settings = {"config": asdict(config), "physics": run.physics.to_dict(), "identity": run.identity,
                 "motions": run.motions, "shape_range": [run.range, run.components]}
     optimizer = torch.optim.Adam(run.net.parameters(), lr=config.lr)

@@ -59,6 +59,33 @@ def self_contact_kernels(scalar) -> SimpleNamespace:
     tiny = scalar(1.0e-12)
     one = scalar(1.0)
 
+    @wp.func
+    def add_pair(i0: int, i1: int, i2: int, i3: int, w0: scalar, w1: scalar, w2: scalar, w3: scalar,
+                 diff: vec3, inst: int, diag_slots: wp.array(dtype=wp.int32), thickness: scalar, stiffness: scalar,
+                 power: scalar, want_energy: int, want_grad: int, want_hess: int, energy: wp.array(dtype=scalar),
+                 grad: wp.array(dtype=vec3), hess: wp.array(dtype=mat33)):
+        # One pair's penalty k (thickness - d)^p of d = |diff|, diff = sum_k w_k x_{i_k} at fixed
+        # closest points: energy, gradient and the four diagonal Gauss-Newton blocks.
+        d = wp.length(diff)
+        if d >= thickness or d <= tiny:
+            return
+        n = diff / d
+        pen = thickness - d
+        if want_energy != 0:
+            wp.atomic_add(energy, inst, stiffness * wp.pow(pen, power))
+        if want_grad != 0:
+            g = (-stiffness * power * wp.pow(pen, power - one)) * n  # dE/d(diff)
+            wp.atomic_add(grad, i0, w0 * g)
+            wp.atomic_add(grad, i1, w1 * g)
+            wp.atomic_add(grad, i2, w2 * g)
+            wp.atomic_add(grad, i3, w3 * g)
+        if want_hess != 0:
+            nn = (stiffness * power * (power - one) * wp.pow(pen, power - scalar(2.0))) * wp.outer(n, n)
+            wp.atomic_add(hess, diag_slots[i0], (w0 * w0) * nn)
+            wp.atomic_add(hess, diag_slots[i1], (w1 * w1) * nn)
+            wp.atomic_add(hess, diag_slots[i2], (w2 * w2) * nn)
+            wp.atomic_add(hess, diag_slots[i3], (w3 * w3) * nn)
+
     @wp.kernel(enable_backward=False, module=mod)
     def shift(x: wp.array(dtype=vec3), vertex_instance: wp.array(dtype=wp.int32), offsets: wp.array(dtype=wp.vec3),
               points: wp.array(dtype=wp.vec3)):
@@ -106,26 +133,8 @@ def self_contact_kernels(scalar) -> SimpleNamespace:
             ib = triangles[face, 1]
             ic = triangles[face, 2]
             q, w, interior = closest_point_triangle(p, x[ia], x[ib], x[ic])
-            diff = p - q
-            d = wp.length(diff)
-            if d >= thickness or d <= tiny:
-                continue
-            n = diff / d
-            pen = thickness - d
-            if want_energy != 0:
-                wp.atomic_add(energy, vertex_instance[i], stiffness * wp.pow(pen, power))
-            if want_grad != 0:
-                f = (-stiffness * power * wp.pow(pen, power - scalar(1.0))) * n  # dE/dp
-                wp.atomic_add(grad, i, f)
-                wp.atomic_add(grad, ia, -w[0] * f)
-                wp.atomic_add(grad, ib, -w[1] * f)
-                wp.atomic_add(grad, ic, -w[2] * f)
-            if want_hess != 0:
-                nn = (stiffness * power * (power - scalar(1.0)) * wp.pow(pen, power - scalar(2.0))) * wp.outer(n, n)
-                wp.atomic_add(hess, diag_slots[i], nn)
-                wp.atomic_add(hess, diag_slots[ia], (w[0] * w[0]) * nn)
-                wp.atomic_add(hess, diag_slots[ib], (w[1] * w[1]) * nn)
-                wp.atomic_add(hess, diag_slots[ic], (w[2] * w[2]) * nn)
+            add_pair(i, ia, ib, ic, one, -w[0], -w[1], -w[2], p - q, vertex_instance[i], diag_slots, thickness,
+                     stiffness, power, want_energy, want_grad, want_hess, energy, grad, hess)
 
     @wp.kernel(enable_backward=False, module=mod)
     def edge_boxes(x: wp.array(dtype=vec3), edges: wp.array(dtype=wp.int32, ndim=2),
@@ -179,29 +188,9 @@ def self_contact_kernels(scalar) -> SimpleNamespace:
             d = edges[f, 1]
             s, t = closest_points_segments(x[a], x[b], x[c], x[d])
             diff = (x[a] + s * (x[b] - x[a])) - (x[c] + t * (x[d] - x[c]))
-            dist = wp.length(diff)
-            if dist >= thickness or dist <= tiny:
-                continue
-            n = diff / dist
-            pen = thickness - dist
-            wa = one - s  # d(diff)/d(x_a, x_b, x_c, x_d) at fixed s, t
-            wb = s
-            wc = t - one
-            wd = -t
-            if want_energy != 0:
-                wp.atomic_add(energy, vertex_instance[a], stiffness * wp.pow(pen, power))
-            if want_grad != 0:
-                g = (-stiffness * power * wp.pow(pen, power - one)) * n
-                wp.atomic_add(grad, a, wa * g)
-                wp.atomic_add(grad, b, wb * g)
-                wp.atomic_add(grad, c, wc * g)
-                wp.atomic_add(grad, d, wd * g)
-            if want_hess != 0:
-                nn = (stiffness * power * (power - one) * wp.pow(pen, power - scalar(2.0))) * wp.outer(n, n)
-                wp.atomic_add(hess, diag_slots[a], (wa * wa) * nn)
-                wp.atomic_add(hess, diag_slots[b], (wb * wb) * nn)
-                wp.atomic_add(hess, diag_slots[c], (wc * wc) * nn)
-                wp.atomic_add(hess, diag_slots[d], (wd * wd) * nn)
+            # d(diff)/d(x_a, x_b, x_c, x_d) at fixed s, t: 1 - s, s, t - 1, -t
+            add_pair(a, b, c, d, one - s, s, t - one, -t, diff, vertex_instance[a], diag_slots, thickness,
+                     stiffness, power, want_energy, want_grad, want_hess, energy, grad, hess)
 
     return SimpleNamespace(shift=shift, candidates=candidates, repulsion=repulsion, edge_boxes=edge_boxes,
                            edge_candidates=edge_candidates, edge_repulsion=edge_repulsion)
