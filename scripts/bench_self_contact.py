@@ -54,10 +54,10 @@ def profile(garment, body, motion, n, frames, cfg) -> dict:
     calls = []
     original = impact_filter.ImpactFilter.apply
 
-    def timed(self, x0, state, h):
+    def timed(self, x0, state):
         wp.synchronize_device(self.model.device)
         t = time.perf_counter()
-        original(self, x0, state, h)
+        original(self, x0, state)
         wp.synchronize_device(self.model.device)
         calls.append((time.perf_counter() - t, int(self._round.numpy()[0]), int(self.whole.numpy().sum())))
 

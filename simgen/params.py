@@ -113,10 +113,8 @@ class SelfContactParams:
                                    doc="[m] candidate triangles are gathered within it (must exceed the thickness)")
     max_candidates: int = setting(16, low=1, doc="triangles kept per vertex, and edges per edge (the first "
                                                  "found within the radius)")
-    impulse_rounds: int = setting(4, low=0, doc="detection passes of the impact filter per substep that answer "
-                                                 "impacts with inelastic impulses")
-    zone_rounds: int = setting(4, low=1, doc="detection passes after the impulses that answer with rigid impact "
-                                             "zones (an instance still impacting in the last one moves as one zone)")
+    impact_rounds: int = setting(4, low=1, doc="detection passes of the impact filter per substep (an instance "
+                                               "still impacting in the last one moves as one zone)")
 
     def __post_init__(self) -> None:
         validate(self, "self-contact")

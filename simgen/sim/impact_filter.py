@@ -138,60 +138,12 @@ def impact_kernels(scalar) -> SimpleNamespace:
                 return
 
     @wp.func
-    def pair_weights(kind: int, a: vec3, b: vec3, c: vec3, d: vec3):
-        # Weights w (sum w_j x_j = the pair's separation vector) and that vector, at these positions.
-        if kind == 0:
-            q, bary, inside = closest_point_triangle(a, b, c, d)
-            return wp.vec4(one, -bary[0], -bary[1], -bary[2]), a - q
-        s, u = closest_points_segments(a, b, c, d)
-        w = wp.vec4(one - s, s, u - one, -u)
-        return w, (a + s * (b - a)) - (c + u * (d - c))
-
-    @wp.func
-    def impulse(kind: int, toi: scalar, gap_cap: scalar, i0: int, i1: int, i2: int, i3: int,
-                x0: wp.array(dtype=vec3), x1: wp.array(dtype=vec3), inv_mass: wp.array(dtype=scalar),
-                shift: wp.array(dtype=vec3), shift_count: wp.array(dtype=scalar)):
-        # Inelastic impulse (Bridson et al. 2002, sec. 7.2) on positions: along the pair's normal at
-        # the time of impact, the pair ends no closer than it started (capped at gap_cap).
-        a = x0[i0] + toi * (x1[i0] - x0[i0])
-        b = x0[i1] + toi * (x1[i1] - x0[i1])
-        c = x0[i2] + toi * (x1[i2] - x0[i2])
-        d = x0[i3] + toi * (x1[i3] - x0[i3])
-        w, sep = pair_weights(kind, a, b, c, d)
-        length = wp.length(sep)
-        if length <= tiny:
-            return
-        n = sep / length
-        start = pair_distance(kind, x0[i0], x0[i1], x0[i2], x0[i3])
-        g1 = wp.dot(n, w[0] * x1[i0] + w[1] * x1[i1] + w[2] * x1[i2] + w[3] * x1[i3])
-        m0, m1, m2, m3 = inv_mass[i0], inv_mass[i1], inv_mass[i2], inv_mass[i3]
-        denom = w[0] * w[0] * m0 + w[1] * w[1] * m1 + w[2] * w[2] * m2 + w[3] * w[3] * m3
-        lam = wp.min(start, gap_cap) - g1
-        if lam <= zero or denom <= tiny:
-            return
-        lam = lam / denom
-        wp.atomic_add(shift, i0, (lam * w[0] * m0) * n)
-        wp.atomic_add(shift, i1, (lam * w[1] * m1) * n)
-        wp.atomic_add(shift, i2, (lam * w[2] * m2) * n)
-        wp.atomic_add(shift, i3, (lam * w[3] * m3) * n)
-        wp.atomic_add(shift_count, i0, one)
-        wp.atomic_add(shift_count, i1, one)
-        wp.atomic_add(shift_count, i2, one)
-        wp.atomic_add(shift_count, i3, one)
-
-    @wp.func
-    def respond(kind: int, toi: scalar, r: int, impulses: int, total: int, gap_cap: scalar, inst: int,
-                i0: int, i1: int, i2: int, i3: int, x0: wp.array(dtype=vec3), x1: wp.array(dtype=vec3),
-                inv_mass: wp.array(dtype=scalar), shift: wp.array(dtype=vec3), shift_count: wp.array(dtype=scalar),
-                parent: wp.array(dtype=wp.int32), whole: wp.array(dtype=wp.int32), impacts: wp.array(dtype=wp.int32),
-                pending: wp.array(dtype=wp.int32)):
-        # An impacting pair: an impulse in round r < impulses, then a zone, then (last round) its
-        # whole instance.
+    def record(parent: wp.array(dtype=wp.int32), whole: wp.array(dtype=wp.int32), last: int, inst: int,
+               i0: int, i1: int, i2: int, i3: int, impacts: wp.array(dtype=wp.int32),
+               pending: wp.array(dtype=wp.int32)):
         pending[0] = 1
         wp.atomic_add(impacts, inst, 1)
-        if r < impulses:
-            impulse(kind, toi, gap_cap, i0, i1, i2, i3, x0, x1, inv_mass, shift, shift_count)
-        elif r >= total - 1:
+        if last != 0:
             whole[inst] = 1
         else:
             union(parent, i0, i1)
@@ -222,13 +174,11 @@ def impact_kernels(scalar) -> SimpleNamespace:
     @wp.kernel(enable_backward=False, module=mod)
     def vertex_triangle(x0: wp.array(dtype=vec3), x1: wp.array(dtype=vec3), triangles: wp.array(dtype=wp.int32, ndim=2),
                         vertex_instance: wp.array(dtype=wp.int32), offsets: wp.array(dtype=wp.vec3), bvh: wp.uint64,
-                        pad: float, round_index: wp.array(dtype=wp.int32), impulses: int, total: int,
-                        gap_cap: scalar, inv_mass: wp.array(dtype=scalar), shift: wp.array(dtype=vec3),
-                        shift_count: wp.array(dtype=scalar), parent: wp.array(dtype=wp.int32),
-                        whole: wp.array(dtype=wp.int32), impacts: wp.array(dtype=wp.int32),
-                        pending: wp.array(dtype=wp.int32)):
+                        pad: float, round_index: wp.array(dtype=wp.int32), rounds: int,
+                        parent: wp.array(dtype=wp.int32), whole: wp.array(dtype=wp.int32),
+                        impacts: wp.array(dtype=wp.int32), pending: wp.array(dtype=wp.int32)):
         i = wp.tid()
-        r = round_index[0]
+        last = int(round_index[0] >= rounds - 1)
         inst = vertex_instance[i]
         lo, hi = swept_box(x0[i], x1[i], offsets[inst], pad)
         query = wp.bvh_query_aabb(bvh, lo, hi)
@@ -242,19 +192,16 @@ def impact_kernels(scalar) -> SimpleNamespace:
             toi = time_of_impact(0, x0[i], x0[ia], x0[ib], x0[ic], x1[i] - x0[i], x1[ia] - x0[ia],
                                  x1[ib] - x0[ib], x1[ic] - x0[ic])
             if toi < one:
-                respond(0, toi, r, impulses, total, gap_cap, inst, i, ia, ib, ic, x0, x1, inv_mass, shift,
-                        shift_count, parent, whole, impacts, pending)
+                record(parent, whole, last, inst, i, ia, ib, ic, impacts, pending)
 
     @wp.kernel(enable_backward=False, module=mod)
     def edge_edge(x0: wp.array(dtype=vec3), x1: wp.array(dtype=vec3), edges: wp.array(dtype=wp.int32, ndim=2),
                   vertex_instance: wp.array(dtype=wp.int32), offsets: wp.array(dtype=wp.vec3), bvh: wp.uint64,
-                  pad: float, round_index: wp.array(dtype=wp.int32), impulses: int, total: int,
-                  gap_cap: scalar, inv_mass: wp.array(dtype=scalar), shift: wp.array(dtype=vec3),
-                  shift_count: wp.array(dtype=scalar), parent: wp.array(dtype=wp.int32),
+                  pad: float, round_index: wp.array(dtype=wp.int32), rounds: int, parent: wp.array(dtype=wp.int32),
                   whole: wp.array(dtype=wp.int32), impacts: wp.array(dtype=wp.int32),
                   pending: wp.array(dtype=wp.int32)):
         e = wp.tid()
-        r = round_index[0]
+        last = int(round_index[0] >= rounds - 1)
         a = edges[e, 0]
         b = edges[e, 1]
         inst = vertex_instance[a]
@@ -272,38 +219,19 @@ def impact_kernels(scalar) -> SimpleNamespace:
             toi = time_of_impact(1, x0[a], x0[b], x0[c], x0[d], x1[a] - x0[a], x1[b] - x0[b],
                                  x1[c] - x0[c], x1[d] - x0[d])
             if toi < one:
-                respond(1, toi, r, impulses, total, gap_cap, inst, a, b, c, d, x0, x1, inv_mass, shift,
-                        shift_count, parent, whole, impacts, pending)
-
-    @wp.kernel(enable_backward=False, module=mod)
-    def apply_shifts(shift: wp.array(dtype=vec3), shift_count: wp.array(dtype=scalar), h: scalar,
-                     x: wp.array(dtype=vec3), v: wp.array(dtype=vec3), target: wp.array(dtype=vec3),
-                     target_v: wp.array(dtype=vec3)):
-        # Jacobi: each vertex takes the mean of its pairs' impulses (positions, and velocities by
-        # shift / h), and the zones of later rounds start from there.
-        i = wp.tid()
-        c = shift_count[i]
-        if c > zero:
-            dx = shift[i] / c
-            x[i] = x[i] + dx
-            v[i] = v[i] + dx / h
-            target[i] = x[i]
-            target_v[i] = v[i]
+                record(parent, whole, last, inst, a, b, c, d, impacts, pending)
 
     @wp.kernel(enable_backward=False, module=mod)
     def zone_sums(x0: wp.array(dtype=vec3), target: wp.array(dtype=vec3), target_v: wp.array(dtype=vec3),
                   mass: wp.array(dtype=scalar), pinned: wp.array(dtype=wp.int32),
                   vertex_instance: wp.array(dtype=wp.int32),
                   instance_root: wp.array(dtype=wp.int32), whole: wp.array(dtype=wp.int32),
-                  round_index: wp.array(dtype=wp.int32), impulses: int,
                   parent: wp.array(dtype=wp.int32), zone: wp.array(dtype=wp.int32), size: wp.array(dtype=wp.int32),
                   weight: wp.array(dtype=scalar), motion: wp.array(dtype=vec3), velocity: wp.array(dtype=vec3)):
         # Each vertex's zone (its instance's first vertex once the instance falls back to one zone)
         # and the zone's sums: size, weight and weighted displacement and velocity. Pinned vertices
         # count alone when the zone has any (a zone follows its kinematic vertices).
         i = wp.tid()
-        if round_index[0] < impulses:
-            return
         inst = vertex_instance[i]
         r = find(parent, i)
         if whole[inst] != 0:
@@ -321,12 +249,9 @@ def impact_kernels(scalar) -> SimpleNamespace:
     def move_zones(x0: wp.array(dtype=vec3), target: wp.array(dtype=vec3), target_v: wp.array(dtype=vec3),
                    pinned: wp.array(dtype=wp.int32), zone: wp.array(dtype=wp.int32), size: wp.array(dtype=wp.int32),
                    weight: wp.array(dtype=scalar), motion: wp.array(dtype=vec3), velocity: wp.array(dtype=vec3),
-                   round_index: wp.array(dtype=wp.int32), impulses: int, x: wp.array(dtype=vec3),
-                   v: wp.array(dtype=vec3)):
+                   x: wp.array(dtype=vec3), v: wp.array(dtype=vec3)):
         # A vertex alone keeps the solver's motion; a zone translates as one body (its momentum kept).
         i = wp.tid()
-        if round_index[0] < impulses:
-            return
         r = zone[i]
         if size[r] > 1 and pinned[i] == 0:
             x[i] = x0[i] + motion[r] / weight[r]
@@ -348,11 +273,8 @@ def impact_kernels(scalar) -> SimpleNamespace:
 
     @wp.kernel(enable_backward=False, module=mod)
     def clear(size: wp.array(dtype=wp.int32), weight: wp.array(dtype=scalar), motion: wp.array(dtype=vec3),
-              velocity: wp.array(dtype=vec3), shift: wp.array(dtype=vec3), shift_count: wp.array(dtype=scalar),
-              pending: wp.array(dtype=wp.int32)):
+              velocity: wp.array(dtype=vec3), pending: wp.array(dtype=wp.int32)):
         i = wp.tid()
-        shift[i] = vec3()
-        shift_count[i] = zero
         size[i] = 0
         weight[i] = zero
         motion[i] = vec3()
@@ -369,27 +291,22 @@ def impact_kernels(scalar) -> SimpleNamespace:
             pending[0] = 0
 
     return SimpleNamespace(boxes=boxes, vertex_triangle=vertex_triangle, edge_edge=edge_edge, zone_sums=zone_sums,
-                           move_zones=move_zones, apply_shifts=apply_shifts, start=start, clear=clear, next_round=next_round,
+                           move_zones=move_zones, start=start, clear=clear, next_round=next_round,
                            time_of_impact=time_of_impact, pair_distance=pair_distance)
 
 
 class ImpactFilter:
     """Device buffers of the filter for one :class:`~simgen.sim.model.ClothModel` (module doc).
 
-    impulse_rounds: detection passes that answer impacts with impulses (>= 0); zone_rounds: the
-    passes after them that answer with zones (>= 1; impacts found by the last one merge their whole
-    instance into one zone). gap_cap [m]: an impulse restores a pair's start distance up to this
-    (the repulsion's thickness). pad [m]: swept boxes are grown by it (float32 broad phase
-    round-off). After :meth:`apply`, per instance (I,) int32: ``impacts`` the pairs found impacting
-    in the last round that ran (0: none were left, or none were found), ``whole`` 1 where the
-    instance moved as one zone.
+    rounds: detection passes per substep (>= 1; impacts found by the last one merge their whole
+    instance into one zone). pad [m]: swept boxes are grown by it (float32 broad phase round-off).
+    After :meth:`apply`, per instance (I,) int32: ``impacts`` the pairs found impacting in the last
+    round that ran (0: none were left, or none were found), ``whole`` 1 where the instance moved
+    as one zone.
     """
 
-    def __init__(self, model, *, impulse_rounds: int = 4, zone_rounds: int = 4, gap_cap: float = 2.0e-3,
-                 pad: float = 1.0e-4) -> None:
-        self.model, self.pad = model, float(pad)
-        self.impulse_rounds, self.rounds = int(impulse_rounds), int(impulse_rounds) + int(zone_rounds)
-        self.gap_cap = model.scalar(gap_cap)
+    def __init__(self, model, rounds: int = 4, pad: float = 1.0e-4) -> None:
+        self.model, self.rounds, self.pad = model, int(rounds), float(pad)
         dev, n, ni = model.device, model.num_vertices, model.num_instances
         tris = np.asarray(model.host.triangles, dtype=np.int32)
         self.edges = wp.array(unique_edges(tris).astype(np.int32), dtype=wp.int32, device=dev)
@@ -397,11 +314,6 @@ class ImpactFilter:
         self.impacts = wp.zeros(ni, dtype=wp.int32, device=dev)
         self.whole = wp.zeros(ni, dtype=wp.int32, device=dev)
         self._instance_root = wp.array(model.vertex_start[:-1].astype(np.int32), dtype=wp.int32, device=dev)
-        mass, pinned = model.vertex_mass.numpy(), model.vertex_pinned.numpy()
-        inv_mass = np.where((pinned == 0) & (mass > 0), 1.0 / np.where(mass > 0, mass, 1.0), 0.0)
-        self._inv_mass = wp.array(inv_mass, dtype=model.scalar, device=dev)
-        self._shift = wp.zeros(n, dtype=model.vec3, device=dev)
-        self._shift_count = wp.zeros(n, dtype=model.scalar, device=dev)
         self._parent = wp.zeros(n, dtype=wp.int32, device=dev)
         self._zone = wp.zeros(n, dtype=wp.int32, device=dev)
         self._size = wp.zeros(n, dtype=wp.int32, device=dev)
@@ -426,41 +338,36 @@ class ImpactFilter:
         wp.launch(impact_kernels(m.scalar).boxes, dim=elements.shape[0], device=m.device,
                   inputs=[x0, x1, elements, m.vertex_instance, self.offsets, self.pad, lo, hi])
 
-    def apply(self, x0, state, h: float) -> None:
+    def apply(self, x0, state) -> None:
         """Move ``state`` from ``x0`` [m], (V,) vec3 (the substep's start, crossing nothing) so that
-        the motion crosses nothing either: positions and velocities in place; h [s] the substep
-        (an impulse's velocity change is its displacement / h). A round runs only after one that
-        found an impact (a conditional loop, inside a CUDA graph too)."""
+        the motion crosses nothing either: positions and velocities in place. A round runs only
+        after one that found an impact (a conditional loop, inside a CUDA graph too)."""
         m, k = self.model, impact_kernels(self.model.scalar)
         wp.copy(self._target, state.positions)
         wp.copy(self._target_v, state.velocities)
         wp.launch(k.start, dim=m.num_vertices, device=m.device,
                   inputs=[self._parent, self.whole, self._round, self._pending])
-        wp.capture_while(self._pending, self._one_round, x0=x0, state=state, h=m.scalar(h))
+        wp.capture_while(self._pending, self._one_round, x0=x0, state=state)
 
-    def _one_round(self, x0, state, h) -> None:
+    def _one_round(self, x0, state) -> None:
         m, k = self.model, impact_kernels(self.model.scalar)
         x = state.positions
         for elements, lo, hi, bvh in self._bvhs:
             self._boxes(x0, x, elements, lo, hi)
             bvh.refit()
-        wp.launch(k.clear, dim=m.num_vertices, device=m.device, inputs=[
-            self._size, self._weight, self._motion, self._velocity, self._shift, self._shift_count, self._pending])
+        wp.launch(k.clear, dim=m.num_vertices, device=m.device,
+                  inputs=[self._size, self._weight, self._motion, self._velocity, self._pending])
         self.impacts.zero_()
         (tris, *_, tri_bvh), (edges, *_, edge_bvh) = self._bvhs
         common = [m.vertex_instance, self.offsets]
-        tail = [self.pad, self._round, self.impulse_rounds, self.rounds, self.gap_cap, self._inv_mass, self._shift,
-                self._shift_count, self._parent, self.whole, self.impacts, self._pending]
+        tail = [self.pad, self._round, self.rounds, self._parent, self.whole, self.impacts, self._pending]
         wp.launch(k.vertex_triangle, dim=m.num_vertices, device=m.device,
                   inputs=[x0, x, tris, *common, tri_bvh.id, *tail])
         wp.launch(k.edge_edge, dim=edges.shape[0], device=m.device, inputs=[x0, x, edges, *common, edge_bvh.id, *tail])
-        wp.launch(k.apply_shifts, dim=m.num_vertices, device=m.device, inputs=[
-            self._shift, self._shift_count, h, x, state.velocities, self._target, self._target_v])
         zone_sums = [self._zone, self._size, self._weight, self._motion, self._velocity]
-        stage = [self._round, self.impulse_rounds]
         wp.launch(k.zone_sums, dim=m.num_vertices, device=m.device, inputs=[
             x0, self._target, self._target_v, m.vertex_mass, m.vertex_pinned, m.vertex_instance, self._instance_root,
-            self.whole, *stage, self._parent, *zone_sums])
+            self.whole, self._parent, *zone_sums])
         wp.launch(k.move_zones, dim=m.num_vertices, device=m.device, inputs=[
-            x0, self._target, self._target_v, m.vertex_pinned, *zone_sums, *stage, x, state.velocities])
+            x0, self._target, self._target_v, m.vertex_pinned, *zone_sums, x, state.velocities])
         wp.launch(k.next_round, dim=1, device=m.device, inputs=[self._round, self.rounds, self._pending])

@@ -234,9 +234,8 @@ class ImplicitSolver:
         # The contact's body part rule, decided per vertex at each step's start and held through it.
         self.part_choice = wp.zeros(m.num_vertices, dtype=wp.int32, device=dev)
         self.self_contact = SelfContactSet(m, cfg.self_contact) if cfg.self_contact is not None else None
-        sc = cfg.self_contact
-        self.impact_filter = (ImpactFilter(m, impulse_rounds=sc.impulse_rounds, zone_rounds=sc.zone_rounds,
-                                           gap_cap=sc.thickness) if sc is not None else None)
+        self.impact_filter = (ImpactFilter(m, cfg.self_contact.impact_rounds) if cfg.self_contact is not None
+                              else None)
         self._substep_start = m.new_gradient() if self.impact_filter is not None else None
         self.strain_limiter = (StrainLimiter(m, cfg.strain_limit, cfg.strain_limit_iterations)
                                if cfg.strain_limit is not None else None)
@@ -389,7 +388,7 @@ class ImplicitSolver:
                 project_floor(self.model, work, cfg.floor, cfg.projection_offset)
             if self.impact_filter is not None:
                 # Last: whatever moved the cloth in this substep (solve, limiter, projections).
-                self.impact_filter.apply(self._substep_start, work, dt / n)
+                self.impact_filter.apply(self._substep_start, work)
             if projecting:
                 self._lag_contacts(work, body)
         state_out.assign(work)
