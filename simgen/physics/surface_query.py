@@ -180,31 +180,35 @@ class BodySurface:
     # -- per-frame geometry ---------------------------------------------------------------------
 
     def frame_geometry(self, vertices: torch.Tensor) -> dict:
-        """Per-frame data of one posed body, vertices [m] (Vb, 3): triangle corners (Fb, 3, 3), unit
-        face normals (Fb, 3), vertex and edge pseudo-normals, cluster bounding spheres."""
-        tri = vertices[self.faces]                                             # (Fb, 3, 3)
-        n = torch.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0], dim=-1)
+        """Per-frame data of posed bodies, vertices [m] (Vb, 3) or (B, Vb, 3) for B frames: triangle
+        corners (..., Fb, 3, 3), unit face normals (..., Fb, 3), vertex and edge pseudo-normals,
+        cluster bounding spheres; every entry keeps the input's leading frame dimension (if any)."""
+        if vertices.ndim == 2:
+            return {k: v[0] for k, v in self.frame_geometry(vertices[None]).items()}
+        nb = vertices.shape[0]
+        tri = vertices[:, self.faces]                                          # (B, Fb, 3, 3)
+        n = torch.cross(tri[..., 1, :] - tri[..., 0, :], tri[..., 2, :] - tri[..., 0, :], dim=-1)
         fn = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-30)
         # Interior angle at each corner: weights of the vertex pseudo-normals.
         angles = []
         for k in range(3):
-            u = tri[:, (k + 1) % 3] - tri[:, k]
-            w = tri[:, (k + 2) % 3] - tri[:, k]
+            u = tri[..., (k + 1) % 3, :] - tri[..., k, :]
+            w = tri[..., (k + 2) % 3, :] - tri[..., k, :]
             cos = _dot(u, w) / (u.norm(dim=-1) * w.norm(dim=-1)).clamp_min(1e-30)
             angles.append(torch.acos(cos.clamp(-1.0, 1.0)))
-        angles = torch.stack(angles, dim=1)                                     # (Fb, 3)
-        vn = torch.zeros((self.num_vertices, 3), dtype=vertices.dtype, device=vertices.device)
-        vn.index_add_(0, self.faces.reshape(-1), (angles[..., None] * fn[:, None, :]).reshape(-1, 3))
-        en = fn[self.edge_faces[:, 0]] + fn[self.edge_faces[:, 1]]
-        centroid = tri.mean(dim=1)
-        face_radius = (tri - centroid[:, None]).norm(dim=-1).amax(dim=1)
+        angles = torch.stack(angles, dim=-1)                                    # (B, Fb, 3)
+        vn = torch.zeros((nb, self.num_vertices, 3), dtype=vertices.dtype, device=vertices.device)
+        vn.index_add_(1, self.faces.reshape(-1), (angles[..., None] * fn[..., None, :]).reshape(nb, -1, 3))
+        en = fn[:, self.edge_faces[:, 0]] + fn[:, self.edge_faces[:, 1]]
+        centroid = tri.mean(dim=-2)
+        face_radius = (tri - centroid[..., None, :]).norm(dim=-1).amax(dim=-1)
         members = self.cluster_members
         valid = members >= 0
         m = members.clamp_min(0)
         count = valid.sum(1, keepdim=True).to(vertices.dtype)
-        centre = (centroid[m] * valid[..., None]).sum(1) / count
-        radius = torch.where(valid, (centroid[m] - centre[:, None]).norm(dim=-1) + face_radius[m],
-                             torch.zeros_like(face_radius[m])).amax(dim=1)
+        centre = (centroid[:, m] * valid[..., None]).sum(-2) / count
+        radius = torch.where(valid, (centroid[:, m] - centre[..., None, :]).norm(dim=-1) + face_radius[:, m],
+                             torch.zeros_like(face_radius[:, m])).amax(dim=-1)
         return dict(tri=tri, face_normal=fn, vertex_normal=vn, edge_normal=en, face_centroid=centroid,
                     face_radius=face_radius, cluster_centre=centre, cluster_radius=radius)
 
@@ -212,22 +216,31 @@ class BodySurface:
 
     @torch.no_grad()
     def nearest_faces(self, points: torch.Tensor, geometry: dict, *, k: int = 8, faces_per_point: int = 24,
-                      chunk: int = 1024) -> torch.Tensor:
-        """Index of the exactly nearest body triangle of each point [m] (P, 3) -> (P,) long.
+                      chunk: int | None = None) -> torch.Tensor:
+        """Index of the exactly nearest body triangle of each point [m]: (P, 3) with one frame's
+        geometry -> (P,) long, or (B, P, 3) with B frames' geometry (:meth:`frame_geometry`) -> (B, P).
 
         Clusters: the k of smallest lower bound first; every cluster whose lower bound is below the
         best distance found could hold a closer triangle, so points with more such clusters than k
         are searched again over exactly that many (the best distance only shrinks: exact). Within
         the candidate clusters, the exact point-triangle test runs on the ``faces_per_point``
         triangles of smallest bounding-sphere lower bound, and on all candidates for the points
-        where a triangle left out could still be closer.
+        where a triangle left out could still be closer. chunk: points searched at once (None: 1024
+        on the CPU, 32768 on a GPU, where the search is bound by kernel launches, not memory).
         """
-        tri = geometry["tri"]
+        if points.ndim == 2:
+            return self.nearest_faces(points[None], {k_: v[None] for k_, v in geometry.items()}, k=k,
+                                      faces_per_point=faces_per_point, chunk=chunk)[0]
+        if chunk is None:
+            chunk = 1024 if points.device.type == "cpu" else 32768
+        nb, npts = points.shape[:2]
+        nf = self.num_faces
+        tri = geometry["tri"].reshape(-1, 3, 3)                                   # (B * Fb, 3, 3)
         a = tri[:, 0]
         ab, ac = tri[:, 1] - a, tri[:, 2] - a
-        consts = torch.stack([_dot(ab, ab), _dot(ab, ac), _dot(ac, ac)], dim=-1)     # (Fb, 3)
-        f_centre, f_radius = geometry["face_centroid"], geometry["face_radius"]
-        centre, radius = geometry["cluster_centre"], geometry["cluster_radius"]
+        consts = torch.stack([_dot(ab, ab), _dot(ab, ac), _dot(ac, ac)], dim=-1)     # (B * Fb, 3)
+        f_centre, f_radius = geometry["face_centroid"].reshape(-1, 3), geometry["face_radius"].reshape(-1)
+        centre, radius = geometry["cluster_centre"], geometry["cluster_radius"]    # (B, Nc, 3), (B, Nc)
         members = self.cluster_members
         nc = members.shape[0]
         # Round-off allowance of the float lower bounds [m].
@@ -236,7 +249,7 @@ class BodySurface:
         inf = float("inf")
 
         def exact(p, fc, valid):
-            """Nearest of the triangles fc (n, m) (where valid) to p (n, 3): (face (n,), distance (n,))."""
+            """Nearest of the triangles fc (n, m) (global ids, where valid) to p (n, 3): (face, distance)."""
             ap = p[:, None, :] - a[fc]
             fab, fac, cst = ab[fc], ac[fc], consts[fc]
             _, v, w = _regions(_dot(fab, ap), _dot(fac, ap), cst[..., 0], cst[..., 1], cst[..., 2])
@@ -245,11 +258,12 @@ class BodySurface:
             best, arg = d2.min(dim=1)
             return fc.gather(1, arg[:, None])[:, 0], best.sqrt()
 
-        def search(p, lb, kk):
+        def search(p, lb, kk, base):
+            # base (n, 1): the row's frame offset into the flattened (B * Fb) face arrays.
             _, ci = torch.topk(lb, kk, dim=1, largest=False, sorted=False)
             faces = members[ci].reshape(len(p), -1)                                   # (n, kk * L)
             valid = faces >= 0
-            fc = faces.clamp_min(0)
+            fc = faces.clamp_min(0) + base
             flb = torch.where(valid, (p[:, None, :] - f_centre[fc]).norm(dim=-1) - f_radius[fc],
                               torch.full(fc.shape, inf, dtype=p.dtype, device=p.device))
             m = min(faces_per_point, fc.shape[1])
@@ -262,25 +276,33 @@ class BodySurface:
                 face[wide], best[wide] = exact(p[wide], fc[wide], valid[wide])
             return face, best
 
-        out = torch.empty(points.shape[0], dtype=torch.long, device=points.device)
-        for start in range(0, points.shape[0], chunk):
-            p = points[start:start + chunk]
-            lb = torch.cdist(p, centre, compute_mode="donot_use_mm_for_euclid_dist") - radius   # (c, Nc)
-            face, best = search(p, lb, min(k, nc))
-            need = (lb < (best + slack)[:, None]).sum(dim=1)
-            again = torch.nonzero(need > k)[:, 0]
-            if again.numel():
-                # Widen in groups of similar need (sorted), bounding the clusters visited at once.
-                again = again[torch.argsort(need[again])]
-                i = 0
-                while i < again.numel():
-                    rows = max(1, self.max_cluster_visits // int(need[again[i]]))
-                    kk = int(need[again[min(i + rows, again.numel()) - 1]])
-                    rows = max(1, min(rows, self.max_cluster_visits // kk))
-                    grp = again[i:i + rows]
-                    face[grp], _ = search(p[grp], lb[grp], int(need[grp].max()))
-                    i += len(grp)
-            out[start:start + chunk] = face
+        out = torch.empty((nb, npts), dtype=torch.long, device=points.device)
+        frames_at_once = max(1, chunk // npts)
+        rows_at_once = min(npts, chunk)
+        for b0 in range(0, nb, frames_at_once):
+            b1 = min(nb, b0 + frames_at_once)
+            for s0 in range(0, npts, rows_at_once):
+                s1 = min(npts, s0 + rows_at_once)
+                q = points[b0:b1, s0:s1]
+                lb = torch.cdist(q, centre[b0:b1], compute_mode="donot_use_mm_for_euclid_dist") - radius[b0:b1, None]
+                lb = lb.reshape(-1, nc)                                                  # (rows, Nc)
+                p = q.reshape(-1, 3)
+                base = (torch.arange(b0, b1, device=p.device) * nf).repeat_interleave(s1 - s0)[:, None]
+                face, best = search(p, lb, min(k, nc), base)
+                need = (lb < (best + slack)[:, None]).sum(dim=1)
+                again = torch.nonzero(need > k)[:, 0]
+                if again.numel():
+                    # Widen in groups of similar need (sorted), bounding the clusters visited at once.
+                    again = again[torch.argsort(need[again])]
+                    i = 0
+                    while i < again.numel():
+                        rows = max(1, self.max_cluster_visits // int(need[again[i]]))
+                        kk = int(need[again[min(i + rows, again.numel()) - 1]])
+                        rows = max(1, min(rows, self.max_cluster_visits // kk))
+                        grp = again[i:i + rows]
+                        face[grp], _ = search(p[grp], lb[grp], int(need[grp].max()), base[grp])
+                        i += len(grp)
+                out[b0:b1, s0:s1] = (face - base[:, 0]).reshape(b1 - b0, s1 - s0)
         return out
 
     @torch.no_grad()
@@ -312,13 +334,16 @@ class BodyDistance:
     bary: torch.Tensor
 
 
-def _signed_on_faces(x, geometry, surface: BodySurface, face):
-    """Differentiable signed distance of points x (P, 3) through the given triangles (P,)."""
-    tri = geometry["tri"][face]
+def _signed_on_faces(x, geometry, surface: BodySurface, face, frame):
+    """Differentiable signed distance of points x (P, 3) through the given triangles (P,) of the
+    frames ``frame`` (P,) long of ``geometry`` (B frames, :meth:`BodySurface.frame_geometry`)."""
+    nf, nv, ne = surface.num_faces, surface.num_vertices, surface.edge_faces.shape[0]
+    gf = face + frame * nf
+    tri = geometry["tri"].reshape(-1, 3, 3)[gf]
     a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
     with torch.no_grad():
         _, bary, region = closest_point_triangle(x.detach(), a.detach(), b.detach(), c.detach())
-    fn = geometry["face_normal"][face]
+    fn = geometry["face_normal"].reshape(-1, 3)[gf]
     # The closest point again, differentiably, within its (fixed) region.
     ab, ac, bc = b - a, c - a, c - b
     t_ab = (_dot(x - a, ab) / _dot(ab, ab)).clamp(0.0, 1.0)[:, None]
@@ -330,9 +355,9 @@ def _signed_on_faces(x, geometry, surface: BodySurface, face):
         closest = torch.where((region == code)[:, None], cand, closest)
     # Pseudo-normal of the closest feature (vertex or edge) for the sign.
     with torch.no_grad():
-        fv = surface.faces[face]
-        fe = surface.face_edges[face]
-        vn, en = geometry["vertex_normal"], geometry["edge_normal"]
+        fv = surface.faces[face] + (frame * nv)[:, None]
+        fe = surface.face_edges[face] + (frame * ne)[:, None]
+        vn, en = geometry["vertex_normal"].reshape(-1, 3), geometry["edge_normal"].reshape(-1, 3)
         # Face edge 0 = (a, b), 1 = (b, c), 2 = (c, a).
         feature_normal = torch.zeros_like(x)
         for code, pn in ((REGION_A, vn[fv[:, 0]]), (REGION_B, vn[fv[:, 1]]), (REGION_C, vn[fv[:, 2]]),
@@ -354,11 +379,14 @@ def _signed_on_faces(x, geometry, surface: BodySurface, face):
     return d, normal, bary
 
 
-def body_distance(x: torch.Tensor, body_vertices: torch.Tensor, surface: BodySurface, *, k: int = 6) -> BodyDistance:
+def body_distance(x: torch.Tensor, body_vertices: torch.Tensor, surface: BodySurface, *, k: int = 6,
+                  frames_at_once: int = 64) -> BodyDistance:
     """Signed distance of every cloth vertex to the posed body (module doc), batched over frames.
 
     x [m] (..., V, 3); body_vertices [m] (..., Vb, 3) with leading dims broadcastable to x's (one
     body per frame, or one for all); surface: the body's :class:`BodySurface` (on x's device).
+    frames_at_once: frames whose body geometry is held and searched together (memory ~ 2 MB per
+    frame of the 13k-vertex body in float32).
     """
     if body_vertices.shape[-2:] != (surface.num_vertices, 3):
         raise InputError(f"body vertices must have shape (..., {surface.num_vertices}, 3), got "
@@ -369,18 +397,26 @@ def body_distance(x: torch.Tensor, body_vertices: torch.Tensor, surface: BodySur
     nv = x.shape[-2]
     xs = x.expand(lead + x.shape[-2:]).reshape((-1, nv, 3))
     bs = body_vertices.to(dtype=x.dtype).expand(lead + body_vertices.shape[-2:]).reshape((-1, surface.num_vertices, 3))
-    ds, ns, fs, bys = [], [], [], []
     static = math.prod(body_vertices.shape[:-2]) == 1      # one body for every frame: its geometry once
-    geometry = None
-    for i in range(xs.shape[0]):
-        if geometry is None or not static:
-            geometry = surface.frame_geometry(bs[i])
-        face = surface.nearest_faces(xs[i].detach(), {k_: v.detach() for k_, v in geometry.items()}, k=k)
-        d, n, bary = _signed_on_faces(xs[i], geometry, surface, face)
-        ds.append(d)
-        ns.append(n)
+    ds, ns, fs, bys = [], [], [], []
+    geometry = surface.frame_geometry(bs[:1]) if static else None
+    for f0 in range(0, xs.shape[0], frames_at_once):
+        f1 = min(xs.shape[0], f0 + frames_at_once)
+        if not static:
+            geometry = surface.frame_geometry(bs[f0:f1])
+        detached = {k_: v.detach() for k_, v in geometry.items()}
+        pts = xs[f0:f1]
+        if static:
+            face = surface.nearest_faces(pts.detach().reshape(1, -1, 3), detached, k=k).reshape(f1 - f0, nv)
+            frame = torch.zeros(face.numel(), dtype=torch.long, device=x.device)
+        else:
+            face = surface.nearest_faces(pts.detach(), detached, k=k)
+            frame = torch.arange(f1 - f0, device=x.device).repeat_interleave(nv)
+        d, n, bary = _signed_on_faces(pts.reshape(-1, 3), geometry, surface, face.reshape(-1), frame)
+        ds.append(d.reshape(f1 - f0, nv))
+        ns.append(n.reshape(f1 - f0, nv, 3))
         fs.append(face)
-        bys.append(bary)
+        bys.append(bary.reshape(f1 - f0, nv, 3))
     shape = lead + (nv,)
-    return BodyDistance(distance=torch.stack(ds).reshape(shape), normal=torch.stack(ns).reshape(shape + (3,)),
-                        face=torch.stack(fs).reshape(shape), bary=torch.stack(bys).reshape(shape + (3,)))
+    return BodyDistance(distance=torch.cat(ds).reshape(shape), normal=torch.cat(ns).reshape(shape + (3,)),
+                        face=torch.cat(fs).reshape(shape), bary=torch.cat(bys).reshape(shape + (3,)))
