@@ -149,7 +149,8 @@ class BodySurface:
         members = np.full((len(clusters), width), -1, dtype=np.int64)
         for i, c in enumerate(clusters):
             members[i, :len(c)] = c
-        # Cap on clusters visited at once (rows x clusters) in the widening pass: bounds its memory.
+        # Cap on clusters visited at once (rows x clusters) in the widening pass: bounds its memory
+        # (16 times more on a GPU, where each pass costs launches rather than memory).
         self.max_cluster_visits = 16384
         self.faces = torch.as_tensor(f)
         self.face_edges = torch.as_tensor(face_edges.astype(np.int64))
@@ -276,6 +277,7 @@ class BodySurface:
                 face[wide], best[wide] = exact(p[wide], fc[wide], valid[wide])
             return face, best
 
+        visits = self.max_cluster_visits * (1 if points.device.type == "cpu" else 16)
         out = torch.empty((nb, npts), dtype=torch.long, device=points.device)
         frames_at_once = max(1, chunk // npts)
         rows_at_once = min(npts, chunk)
@@ -296,9 +298,9 @@ class BodySurface:
                     again = again[torch.argsort(need[again])]
                     i = 0
                     while i < again.numel():
-                        rows = max(1, self.max_cluster_visits // int(need[again[i]]))
+                        rows = max(1, visits // int(need[again[i]]))
                         kk = int(need[again[min(i + rows, again.numel()) - 1]])
-                        rows = max(1, min(rows, self.max_cluster_visits // kk))
+                        rows = max(1, min(rows, visits // kk))
                         grp = again[i:i + rows]
                         face[grp], _ = search(p[grp], lb[grp], int(need[grp].max()), base[grp])
                         i += len(grp)
