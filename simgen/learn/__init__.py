@@ -16,6 +16,11 @@ SNUG (thesis ch. 5), self-supervised, no dataset:
     model = load_snug_model("runs/snug")                       # the SNUG model (thesis ch. 5)
     pred = model.rollout(load_motion("walk_fast"), betas)      # pred.vertices (T, V, 3) [m]
 
+The same network trained with vertex L2 on a store (thesis Fig. 5.6), and the ch. 5 comparison:
+
+    train_gru_l2(data, "runs/l2", split)                       # -> runs/l2/snug/ (a SnugModel)
+    compare_models(["runs/snug", "runs/l2", "runs/tshirt"], data, "runs/compare")   # Tables 5.1-5.3
+
 See docs/learn.md for the choices made where the thesis is silent and where we depart from it.
 """
 
@@ -33,6 +38,8 @@ from simgen.learn.train import (FitConfig, TrainResult, WrinkleConfig, fit_linea
                                 train_fit, train_wrinkle)
 from simgen.learn.snug import (SnugConfig, SnugModel, SnugNet, SnugResult, load_snug_model, snug_tracks, train_snug,
                                window_loss)
+from simgen.learn.gru_l2 import train_gru_l2
+from simgen.learn.comparison import compare_models
 
 __all__ = [
     "GarmentFitMLP", "WrinkleGRU", "LinearRegressor", "GarmentTemplate", "GarmentModel", "Prediction",
@@ -44,4 +51,5 @@ __all__ = [
     "CollisionSurface", "push_out", "DEFAULT_CLEARANCE", "FEATURE_MODES",
     "feature_size", "motion_features", "lbs_torch", "inverse_lbs_torch",
     "SnugConfig", "SnugModel", "SnugNet", "SnugResult", "train_snug", "load_snug_model", "snug_tracks", "window_loss",
+    "train_gru_l2", "compare_models",
 ]

@@ -1,5 +1,5 @@
-"""The bodies of `simgen train fit|wrinkle`, `simgen eval garment` and `simgen export usd --compare`
-(kept here so that simgen/cli.py holds only the option declarations)."""
+"""The bodies of `simgen train fit|wrinkle|gru-l2`, `simgen eval garment|compare` and `simgen export usd
+--compare` (kept here so that simgen/cli.py holds only the option declarations)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ from pathlib import Path
 
 from simgen.errors import InputError
 
-__all__ = ["run_train", "run_eval_garment", "run_export_compare"]
+__all__ = ["run_train", "run_train_gru_l2", "run_eval_garment", "run_eval_compare", "run_export_compare"]
 
 
 def _body(spec: str | None):
@@ -94,6 +94,70 @@ def run_train(kind: str, *, dataset: str, out: Path, device: str, epochs: int | 
     if baselines:
         paths = fit_linear_baselines(data, out, the_split, feature_mode=config.feature_mode, body=model_body)
         echo("linear baselines: " + ", ".join(str(p) for p in paths.values()))
+
+
+def run_train_gru_l2(*, dataset: str, out: Path, device: str, epochs: int | None, batch_size: int | None,
+                     hidden: int | None, lr: float | None, features: str | None, split: str | None,
+                     test_shapes: str | None, time_budget: float | None, restart: bool, seed: int | None,
+                     max_frames: int | None, body: str | None, echo, progress_factory) -> None:
+    """Train SNUG's network with vertex L2 on a dataset's training sequences into OUT/snug/."""
+    from dataclasses import replace
+
+    from simgen.learn.gru_l2 import train_gru_l2
+    from simgen.learn.snug import SnugConfig
+
+    if time_budget is not None and not time_budget > 0:
+        raise InputError(f"--time-budget must be positive seconds, got {time_budget}")
+    if max_frames is not None and max_frames < 1:
+        raise InputError(f"--max-frames must be at least 1, got {max_frames}")
+    given = {"epochs": epochs, "batch_size": batch_size, "hidden": hidden, "lr": lr, "feature_mode": features,
+             "seed": seed}
+    config = replace(SnugConfig(), **{k: v for k, v in given.items() if v is not None})
+    config.check()
+    model_body = _body(body)
+    data = _load_data(dataset, progress_factory, body=model_body, max_frames=max_frames)
+    the_split = _split(data, out, split, test_shapes)
+    progress, update = progress_factory("training the vertex-L2 GRU", config.epochs)
+    with progress:
+        result = train_gru_l2(data, out, the_split, config=config, device=device, time_budget=time_budget,
+                              resume=not restart, body=model_body,
+                              progress=lambda done, total, info: update(int(done), total))
+    echo(f"vertex-L2 GRU: {result.epochs} epochs, stopped: {result.stopped}, train loss {result.train_loss:.4g} cm^2"
+         + ("" if result.val_loss is None else f", held-out motions {result.val_loss:.4g} cm^2"))
+    echo(f"model: {result.folder}")
+
+
+def run_eval_compare(*, models: str, dataset: str, out: Path, test_shapes: str | None, device: str,
+                     max_sequences: int | None, max_frames: int | None, inside_stride: int, timing_frames: int,
+                     video: bool, body: str | None, echo, progress_factory) -> dict:
+    """Compare model folders, LBS and the simulation on the held-out sequences; write tables, plot, USD, MP4."""
+    from simgen.learn.comparison import compare_models
+    from simgen.learn.comparison.run import compare_sequence_ids
+    from simgen.learn.data import load_garment_data
+
+    folders = [Path(m.strip()) for m in models.split(",") if m.strip()]
+    if not folders:
+        raise InputError("--models needs at least one model folder")
+    for folder in folders:
+        if not folder.is_dir():
+            raise InputError(f"--models {folder} is not a folder")
+    if max_frames is not None and max_frames < 1:
+        raise InputError(f"--max-frames must be at least 1, got {max_frames}")
+    shapes = [s.strip() for s in test_shapes.split(",") if s.strip()] if test_shapes else None
+    model_body = _body(body)
+    ids = compare_sequence_ids(dataset, shapes)
+    progress, update = progress_factory(f"reading {dataset}", 1)
+    with progress:
+        data = load_garment_data(dataset, body=model_body, sequence_ids=ids, max_frames=max_frames, progress=update)
+    progress, update = progress_factory("comparing", 1)
+    with progress:
+        results = compare_models(folders, data, out, test_shapes=shapes, device=device, body=model_body,
+                                 max_sequences=max_sequences, inside_stride=inside_stride,
+                                 timing_frames=timing_frames, video=video, progress=update)
+    echo((Path(out) / "compare.md").read_text(encoding="utf-8"))
+    for name in sorted({f for v in results["files"].values() for f in (v if isinstance(v, list) else [v])}):
+        echo(f"wrote: {Path(out) / name}")
+    return results
 
 
 def run_eval_garment(*, model: Path, dataset: str, out: Path, device: str, timing: bool, timing_frames: int,

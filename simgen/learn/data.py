@@ -274,9 +274,11 @@ def extreme_shapes(data: GarmentData) -> list[str]:
     return sorted(sid for sid, r in reach.items() if top > 0 and r >= top - 1e-6)
 
 
-def make_split(data: GarmentData, by: str = "motion", *, test_shapes=None) -> Split:
+def make_split(data: GarmentData, by: str = "motion", *, test_shapes=None, require_train: bool = True) -> Split:
     """Split sequences by held-out motion (thesis) or by held-out motion and shape (ours); see the
-    module docstring. test_shapes: shape ids to hold out with by="shape" (default: the extremes)."""
+    module docstring. test_shapes: shape ids to hold out with by="shape" (default: the extremes);
+    require_train: refuse a split without training sequences (False: data holding only the
+    sequences to test, as ``simgen eval compare`` reads them)."""
     if by not in SPLIT_MODES:
         raise InputError(f"split {by!r} is not one of {', '.join(SPLIT_MODES)}")
     all_shapes = sorted(data.shapes)
@@ -307,7 +309,7 @@ def make_split(data: GarmentData, by: str = "motion", *, test_shapes=None) -> Sp
             groups["held_out_shape"].append(sid)
         else:
             train.append(sid)
-    if not train:
+    if not train and require_train:
         raise InputError("the split leaves no training sequence (need sequences of 'train' motions with a "
                          "training shape)")
     return Split(by=by, train_sequences=train, test={k: v for k, v in groups.items() if v},

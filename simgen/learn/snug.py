@@ -464,7 +464,17 @@ class SnugResult:
 
 
 class _Run:
-    """The pieces of one run: garment, body, physics, model, data, on one device."""
+    """The pieces of one run: garment, body, physics, model, data, on one device.
+
+    The training loop (:func:`_train_loop`) needs only what this class offers, so other losses of
+    the same SnugNet subclass it (:mod:`simgen.learn.gru_l2`, the vertex-L2 GRU): ``method`` and
+    ``terms`` (the log's loss columns) name the run; :meth:`_resolve_physics` and
+    :meth:`_load_windows` supply the physics and the windows; :meth:`plan` and :meth:`batch_loss`
+    the epoch's draws and a batch's loss; :meth:`training_facts` extra facts for config.json.
+    """
+
+    method = "SNUG (thesis ch. 5)"
+    terms = LOSS_TERMS
 
     def __init__(self, garment, motions, config: SnugConfig, dev: torch.device, body):
         from simgen.body import load as load_body
@@ -477,7 +487,7 @@ class _Run:
         self.body = body if body is not None else load_body("open")
         self.garment = load_garment(garment, body=self.body) if isinstance(garment, str) else garment
         g = self.garment
-        self.physics = resolve_physics(config.physics, g)
+        self.physics = self._resolve_physics(config, g)
         self.identity = {"garment": {"name": g.name, "hash": garment_hash(g)},
                          "body": {"id": self.body.model_id, "hash": self.body.hash}}
         self.rest = ClothRest.from_garment(g, self.physics.material, bending_rest=self.physics.bending_rest,
@@ -485,15 +495,7 @@ class _Run:
         self.surface = BodySurface.from_body(self.body).to(dev)
         self.torch_body = TorchBody(self.body, device=dev)
         self.range, self.components = shape_range(self.body, config)
-        clips = _load_clips(motions, self.body, self.physics.fps, "train")
-        self.motions = [c.name for c in clips]
-        self.windows = SnugWindows(clips, self.physics.fps, config.feature_mode, window=config.window,
-                                   stride=config.window_stride, device=dev)
-        self.val = None
-        val_clips = _load_clips(None, self.body, self.physics.fps, "test") if config.val_windows else []
-        if val_clips:
-            self.val = SnugWindows(val_clips, self.physics.fps, config.feature_mode, window=config.window,
-                                   stride=config.window, device=dev).subset(config.val_windows)
+        self._load_windows(motions, config, dev)
         tpl = GarmentTemplate.from_arrays(g.vertices, g.vertices, g.faces, g.skin_weights,
                                           garment_shape_directions(g.vertices, self.body))
         torch.manual_seed(config.seed)  # the weights' initialisation
@@ -505,6 +507,26 @@ class _Run:
         self._standardise(config)
         self.net.to(dev)
 
+    def _resolve_physics(self, config: SnugConfig, garment) -> SnugPhysics:
+        """The loss's parameters (:func:`resolve_physics` of ``config.physics``)."""
+        return resolve_physics(config.physics, garment)
+
+    def _load_windows(self, motions, config: SnugConfig, dev) -> None:
+        """Set ``motions`` (clip names), ``windows`` (training) and ``val`` (validation, or None)."""
+        clips = _load_clips(motions, self.body, self.physics.fps, "train")
+        self.motions = [c.name for c in clips]
+        self.windows = SnugWindows(clips, self.physics.fps, config.feature_mode, window=config.window,
+                                   stride=config.window_stride, device=dev)
+        self.val = None
+        val_clips = _load_clips(None, self.body, self.physics.fps, "test") if config.val_windows else []
+        if val_clips:
+            self.val = SnugWindows(val_clips, self.physics.fps, config.feature_mode, window=config.window,
+                                   stride=config.window, device=dev).subset(config.val_windows)
+
+    def training_facts(self) -> dict:
+        """Facts of the run for config.json's "training", beside the loop's own."""
+        return {}
+
     @torch.no_grad()
     def _standardise(self, config: SnugConfig) -> None:
         f = self.windows.features.reshape(-1, self.windows.features.shape[-1]).cpu()
@@ -513,8 +535,10 @@ class _Run:
         self.net.input_mean.copy_(torch.cat([torch.zeros(self.body.num_betas), f.mean(0)]))
         self.net.input_std.copy_(torch.cat([b_std, f.std(0, unbiased=False).clamp_min(INPUT_STD_FLOOR)]))
 
-    def plan(self, n: int, config: SnugConfig, generator: torch.Generator):
-        """One epoch's order, shapes (n, B) and GRU initial states (n, layers, hidden), drawn in this order."""
+    def plan(self, n: int, config: SnugConfig, generator: torch.Generator, windows: SnugWindows | None = None):
+        """One epoch's order, shapes (n, B) and GRU initial states (n, layers, hidden), drawn in this order.
+
+        windows: the n windows planned (``self.windows`` when None; SNUG draws its shapes whatever they are)."""
         perm = torch.randperm(n, generator=generator)
         betas = sample_shapes(n, self.body.num_betas, self.range, self.components, generator)
         h0 = torch.randn((n, config.layers, config.hidden), generator=generator) * config.hidden_init_std
@@ -538,7 +562,7 @@ class _Run:
         if self.val is None:
             return None
         g = torch.Generator().manual_seed(12345)
-        _, betas, h0 = self.plan(len(self.val), config, g)
+        _, betas, h0 = self.plan(len(self.val), config, g, self.val)
         total, n = 0.0, len(self.val)
         for s in range(0, n, config.batch_size):
             idx = torch.arange(s, min(s + config.batch_size, n))
@@ -574,10 +598,21 @@ def train_snug(garment: str, out: str | Path, *, motions: list[str] | None = Non
     config.check()
     dev = _device(device)
     run = _Run(garment, motions, config, dev, body)  # checks garment, motions and physics: nothing written yet
-    folder = Path(out) / SNUG_DIR
+    return _start(run, Path(out), config, dev, resume=resume, time_budget=time_budget, progress=progress,
+                  checkpoint_every=checkpoint_every)
+
+
+def _start(run: _Run, out: Path, config: SnugConfig, dev, *, resume: bool, time_budget, progress, checkpoint_every,
+           settings: dict | None = None) -> SnugResult:
+    """Create OUT/snug/, resume the run found there (same settings, else refused) and train.
+
+    settings: what must not change between resumed calls (default: SNUG's config, physics,
+    identity, motions and shape range)."""
+    folder = out / SNUG_DIR
     folder.mkdir(parents=True, exist_ok=True)
-    settings = {"config": asdict(config), "physics": run.physics.to_dict(), "identity": run.identity,
-                "motions": run.motions, "shape_range": [run.range, run.components]}
+    settings = settings if settings is not None else {
+        "config": asdict(config), "physics": run.physics.to_dict(), "identity": run.identity,
+        "motions": run.motions, "shape_range": [run.range, run.components]}
     optimizer = torch.optim.Adam(run.net.parameters(), lr=config.lr)
     generator = torch.Generator().manual_seed(config.seed)
     state = _load_state(folder, settings, resume, dev)
@@ -596,18 +631,18 @@ def _train_loop(run: _Run, folder: Path, config: SnugConfig, optimizer, generato
                 time_budget, progress, checkpoint_every) -> SnugResult:
     n = len(run.windows)
     batches = (n + config.batch_size - 1) // config.batch_size
-    log = _Logger(folder, ["epoch", "steps", "lr", "loss", *LOSS_TERMS, "val_loss", "seconds"], False)
+    log = _Logger(folder, ["epoch", "steps", "lr", "loss", *run.terms, "val_loss", "seconds"], False)
     t0 = last_save = time.monotonic()
     steps, stopped = 0, "epochs"
 
     def save() -> None:
         _save_state(folder, run, optimizer, settings, prog, epoch_rng)
         save_model(run.net, folder, identity=run.identity, training={
-            "method": "SNUG (thesis ch. 5)", "garment": run.garment.name, "motions": run.motions,
+            "method": run.method, "garment": run.garment.name, "motions": run.motions,
             "windows": n, "physics": run.physics.to_dict(), "config": asdict(config), "epochs": prog["epoch"],
             "shape_range": {"range": run.range, "components": run.components},
             "train_loss": prog["history"][-1] if prog["history"] else None,
-            "val_loss": prog["val"][-1] if prog["val"] else None})
+            "val_loss": prog["val"][-1] if prog["val"] else None, **run.training_facts()})
 
     try:
         while prog["epoch"] < config.epochs and not converged(prog["val"], config):
@@ -668,7 +703,7 @@ def _end_epoch(run: _Run, config: SnugConfig, prog: dict, log, lr: float, batche
     prog["history"].append(means.get("total", float("nan")))
     prog["val"].append(val if val is not None else float("nan"))
     log.row({"epoch": prog["epoch"], "steps": prog["epoch"] * batches, "lr": lr, "loss": means.get("total"),
-             **{k: means.get(k) for k in LOSS_TERMS}, "val_loss": "" if val is None else val,
+             **{k: means.get(k) for k in run.terms}, "val_loss": "" if val is None else val,
              "seconds": round(time.monotonic() - t0, 3)})
     prog.update(step=0, sums={}, count=0)
 
