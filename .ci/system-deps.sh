@@ -7,14 +7,16 @@
 #   libegl-mesa0     Mesa's EGL vendor library (surfaceless platform, no display needed)
 #   libgl1-mesa-dri  Mesa's DRI drivers, including swrast/llvmpipe, the CPU rasteriser EGL loads
 # Video encoding needs nothing here: imageio-ffmpeg ships its own ffmpeg binary.
+# The viewer's browser test (tests/test_view.py) needs
+#   chromium         headless Chromium (/usr/bin/chromium), WebGL through its bundled SwiftShader
 #
 # Idempotent: installs only what is missing, prints nothing when everything is present.
 set -euo pipefail
 
-packages=(libegl1 libegl-mesa0 libgl1-mesa-dri)
+packages=(libegl1 libegl-mesa0 libgl1-mesa-dri chromium)
 
 if ! command -v dpkg-query >/dev/null 2>&1; then
-    echo "system-deps: not a Debian-based system; install EGL (Mesa) for offscreen rendering yourself" >&2
+    echo "system-deps: not a Debian-based system; install EGL (Mesa) and Chromium yourself" >&2
     exit 0
 fi
 

@@ -6,6 +6,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 from pathlib import Path
 
 import numpy as np
@@ -19,7 +20,7 @@ def main() -> None:
     args = parser.parse_args()
 
     from simgen.body import load
-    from simgen.io.render import render_sequence
+    from simgen.io.render import render_sequence, scene_legend
     from simgen.io.usd import MeshTrack, write_usd
     from simgen.motion import load_motion
 
@@ -30,6 +31,7 @@ def main() -> None:
         with np.load(path) as data:
             garment = data["positions"].astype(np.float32)
             faces, fps, motion = data["faces"], float(data["fps"]), str(data["motion"])
+            garment_name = json.loads(str(data["summary"])).get("garment") if "summary" in data else None
         clip = load_motion(motion)  # output frame k is the clip's frame k (mean shape)
         frames = garment.shape[0]
         posed = body.forward_sequence(np.zeros(1), clip.poses[:frames], clip.trans[:frames]).vertices
@@ -37,7 +39,8 @@ def main() -> None:
                   MeshTrack("garment", garment, faces, role="garment")]
         print(write_usd(args.out / f"{path.stem}.usdc", tracks, fps=fps))
         if not args.no_video:
-            print(render_sequence(args.out / f"{path.stem}.mp4", tracks, fps=fps))
+            legend = scene_legend(garment=garment_name, motion=motion)
+            print(render_sequence(args.out / f"{path.stem}.mp4", tracks, fps=fps, legend=legend))
 
 
 if __name__ == "__main__":

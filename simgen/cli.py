@@ -60,7 +60,8 @@ COMPILE_NOTICE = "compiling kernels (first run only, ~30 s)"
 #: Options that take several values, comma-separated or as separate words (see normalize_argv):
 #: "number" options collect the numbers that follow (negative ones too), "name" options every word
 #: up to the next option.
-MULTI_VALUE_OPTIONS = {"--betas": "number", "--motions": "name", "--shapes": "name", "--test-shapes": "name"}
+MULTI_VALUE_OPTIONS = {"--betas": "number", "--motions": "name", "--shapes": "name", "--test-shapes": "name",
+                       "--models": "name"}
 _NUMBER = re.compile(r"[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?")
 
 
@@ -299,16 +300,17 @@ def _write_body_usd(path: Path, body, clip, vertices, betas) -> Path:
     return write_usd(path, [track], fps=clip.fps, metadata=meta)
 
 
-def _render_body(folder: Path, body, clip, vertices) -> tuple[Path, Path]:
-    from simgen.io.render import render_frame, render_sequence
+def _render_body(folder: Path, body, clip, vertices, betas=None) -> tuple[Path, Path]:
+    from simgen.io.render import render_frame, render_sequence, scene_legend
     from simgen.io.usd import MeshTrack
 
     track = MeshTrack(name="body", points=vertices, faces=body.faces, role="body")
+    legend = scene_legend(betas=betas, motion=clip.name)
     mid = vertices.shape[0] // 2
-    png = render_frame(folder / f"{clip.name}.png", [track], frame=mid, title=f"{clip.name}  frame {mid}")
+    png = render_frame(folder / f"{clip.name}.png", [track], frame=mid, legend=legend, fps=clip.fps)
     progress, update = _progress("rendering", vertices.shape[0])
     with progress:
-        mp4 = render_sequence(folder / f"{clip.name}.mp4", [track], fps=clip.fps, progress=update)
+        mp4 = render_sequence(folder / f"{clip.name}.mp4", [track], fps=clip.fps, legend=legend, progress=update)
     return png, mp4
 
 
@@ -324,11 +326,18 @@ def demo(
     device: Optional[str] = typer.Option(None, "--device", help="Warp device: cpu or cuda (default: Warp's)."),
     video: bool = typer.Option(True, "--video/--no-video", help="Render an MP4 (and a PNG preview).",
                                rich_help_panel=OUTPUT),
+    with_start: bool = typer.Option(False, "--with-start", help="Also show the start in the MP4: the start "
+                                    "protocol and the clip's first 0.9 s (arms coming down from the T-pose).",
+                                    rich_help_panel=OUTPUT),
 ) -> None:
     """Simulate the T-shirt on the bundled body for a few seconds of a walk; write npz, USD and MP4.
 
     The same as `simgen simulate --garment tshirt --motion walk --frames 91`:
     the thesis start protocol (2 s of relax, ramp and rest), then the motion.
+    The MP4 (1280x720, the camera following the body) shows the body in motion:
+    the start protocol and the walk's first 0.9 s (arms coming down from the
+    T-pose) are simulated and saved but shown only with --with-start. The PNG
+    is the middle frame of the video's walk.
     About 2.5 minutes on a 2-core CPU (2 min 25 s measured, kernels cached);
     the first run also compiles Warp's kernels (~30 s).
     """
@@ -339,7 +348,7 @@ def demo(
     clip = load_motion(motion)
     frames = min(int(round(seconds * clip.fps)) + 1, clip.num_frames)
     _simulate_and_write(garment=garment, motion=motion, body=body, betas=betas, material=None, device=device,
-                        frames=frames, substeps=None, out=out, video=video)
+                        frames=frames, substeps=None, out=out, video=video, with_start=with_start)
 
 
 # --------------------------------------------------------------------------------------------- body
@@ -571,6 +580,7 @@ def garment_preview(
     model.check_betas(beta_values or [0.0])
     garment = load_garment(name, body=model)
     clip = load_motion(motion)
+    _warp_setup()  # the shape transfer runs a Warp query: no banner without --verbose
     progress, update = _progress(f"preview {garment.name} ({clip.name})", frames or clip.num_frames)
     with progress:
         paths = preview_garment(garment, model, clip, out_dir=out, betas=beta_values or None, video=video,
@@ -641,6 +651,9 @@ def simulate(
              "limiter bounded)."),
     self_contact: bool = typer.Option(False, "--self-contact", rich_help_panel=EXPERT,
                                       help="Cloth-cloth vertex-triangle repulsion (SelfContactParams' defaults)."),
+    with_start: bool = typer.Option(False, "--with-start", help="Also show the start in the MP4: the start "
+                                    "protocol and the clip's first 0.9 s (arms coming down from the T-pose).",
+                                    rich_help_panel=OUTPUT),
 ) -> None:
     """Simulate a garment on the body performing a motion (thesis start protocol, then the clip).
 
@@ -649,14 +662,16 @@ def simulate(
     _simulate_and_write(garment=garment, motion=motion, body=body, betas=betas, material=material, device=device,
                         frames=frames, substeps=substeps, out=out, video=video, self_contact=self_contact,
                         newton_iterations=newton_iterations, strain_limit=strain_limit,
-                        constraint_rounds=constraint_rounds)
+                        constraint_rounds=constraint_rounds, with_start=with_start)
 
 
 def _simulate_and_write(*, garment: str, motion: str, body: str, betas: Optional[str], material: Optional[str],
                         device: Optional[str], frames: Optional[int], substeps: Optional[int], out: Path, video: bool,
                         self_contact: bool = False, newton_iterations: Optional[int] = None,
-                        strain_limit: Optional[float] = None, constraint_rounds: Optional[int] = None) -> None:
-    """Solver flags left None take SolverConfig's / SimulationConfig's defaults."""
+                        strain_limit: Optional[float] = None, constraint_rounds: Optional[int] = None,
+                        with_start: bool = False) -> None:
+    """Solver flags left None take SolverConfig's / SimulationConfig's defaults. The renders:
+    simgen._sim_video (the body in motion; the start protocol and the clip's lead-in too with ``with_start``)."""
     import numpy as np
 
     from simgen.garment import load_garment
@@ -718,13 +733,13 @@ def _simulate_and_write(*, garment: str, motion: str, body: str, betas: Optional
             "garment": cloth.name, "betas": [float(b) for b in beta_values]}
     typer.echo(f"usd: {write_usd(out / f'{stem}.usdc', tracks, fps=result.fps, metadata=meta)}")
     if video:
-        from simgen.io.render import render_frame, render_sequence
+        from simgen._sim_video import simulation_pictures
 
-        mid = result.num_frames // 2
-        typer.echo(f"png: {render_frame(out / f'{stem}.png', tracks, frame=mid, title=f'{stem}  frame {mid}')}")
-        progress, update = _progress("rendering", result.num_frames)
+        pictures = simulation_pictures(result, model, clip, garment=cloth.name, with_start=with_start)
+        typer.echo(f"png: {pictures.png(out / f'{stem}.png')}")
+        progress, update = _progress("rendering", len(pictures.labels))
         with progress:
-            typer.echo(f"mp4: {render_sequence(out / f'{stem}.mp4', tracks, fps=result.fps, progress=update)}")
+            typer.echo(f"mp4: {pictures.mp4(out / f'{stem}.mp4', progress=update)}")
     from simgen.sim.placement import ON_BODY_DISTANCE, placement_problems
 
     st = result.stats
@@ -777,6 +792,25 @@ def export_usd(
     typer.echo(f"usd: {_write_body_usd(out, model, clip, vertices, beta_values)}")
 
 
+# --------------------------------------------------------------------------------------------- view
+@app.command("view")
+def view_cmd(
+    path: str = typer.Argument(..., help="A simulation .npz or .usdc, a dataset store (or a folder of stores), "
+                               "or an `eval garment` output folder."),
+    port: int = typer.Option(8080, "--port", help="HTTP port (the next free one if taken; 0: any free port)."),
+    host: str = typer.Option("127.0.0.1", "--host", help="Address to serve on (0.0.0.0: every interface)."),
+    garment: Optional[str] = typer.Option(None, "--garment", help="Dataset folder: preselect this garment's store "
+                                          "(names as in `simgen garment list`)."),
+    shape: Optional[str] = typer.Option(None, "--shape", help="Preselect this shape id (dataset, eval folder)."),
+    motion: Optional[str] = typer.Option(None, "--motion", help="Preselect this motion (names as in "
+                                         "`simgen motion list`)."),
+) -> None:
+    """Browser viewer: play a simulation, a dataset or a model evaluation (viser; Ctrl-C stops)."""
+    from simgen.view import serve
+
+    serve(path, host=host, port=port, garment=garment, shape=shape, motion=motion, echo=typer.echo)
+
+
 # --------------------------------------------------------------------------------------------- render
 @app.command()
 def render(
@@ -795,7 +829,7 @@ def render(
     clip = load_motion(motion)
     vertices, clip = _posed_body_sequence(model, clip, beta_values, frames)
     out.mkdir(parents=True, exist_ok=True)
-    png, mp4 = _render_body(out, model, clip, vertices)
+    png, mp4 = _render_body(out, model, clip, vertices, beta_values)
     typer.echo(f"png: {png}")
     typer.echo(f"mp4: {mp4}")
 
@@ -1037,6 +1071,59 @@ def train_snug_cmd(
     typer.echo(f"SNUG: {result.epochs} epochs, stopped: {result.stopped}, train loss {result.train_loss:.4g} J/frame"
                + ("" if result.val_loss is None else f", validation {result.val_loss:.4g} J/frame"))
     typer.echo(f"model: {result.folder}")
+
+
+@train_app.command("gru-l2")
+def train_gru_l2_cmd(
+    dataset: str = _T_DATASET, out: Path = typer.Option(..., "--out", help="Model folder (the model goes to "
+                                                        "OUT/snug/, the split to OUT/split.json)."),
+    device: str = _T_DEVICE, split: Optional[str] = _T_SPLIT, test_shapes: Optional[str] = _T_TEST_SHAPES,
+    epochs: Optional[int] = typer.Option(None, "--epochs", help="Most epochs (200; it stops at convergence)."),
+    batch_size: Optional[int] = typer.Option(None, "--batch-size", help="Windows per step (16).",
+                                             rich_help_panel=EXPERT),
+    lr: Optional[float] = typer.Option(None, "--lr", help="Adam learning rate of the first epochs (1e-3).",
+                                       rich_help_panel=EXPERT),
+    hidden: Optional[int] = typer.Option(None, "--hidden", help="Units per GRU layer (256).", rich_help_panel=EXPERT),
+    features: Optional[str] = typer.Option(None, "--features", help="Motion descriptor: pose_velocity (default) or "
+                                           "pose.", rich_help_panel=EXPERT),
+    time_budget: Optional[float] = _T_BUDGET, restart: bool = _T_RESTART,
+    seed: Optional[int] = typer.Option(None, "--seed", help="Random seed (0)."), max_frames: Optional[int] = _T_MAXF,
+    body: Optional[str] = _T_BODY,
+) -> None:
+    """SNUG's GRU trained with vertex L2 on the simulations (thesis Fig. 5.6 "supervised"); resumes a run."""
+    from simgen.learn._cli import run_train_gru_l2
+
+    _warp_setup(device if device.startswith("cuda") else "cpu")
+    run_train_gru_l2(dataset=dataset, out=out, device=device, epochs=epochs, batch_size=batch_size, hidden=hidden,
+                     lr=lr, features=features, split=split, test_shapes=test_shapes, time_budget=time_budget,
+                     restart=restart, seed=seed, max_frames=max_frames, body=body, echo=typer.echo,
+                     progress_factory=_progress)
+
+
+@eval_app.command("compare")
+def eval_compare_cmd(
+    models: str = typer.Option(..., "--models", help="Model folders (`simgen train snug|gru-l2|fit`), 'a,b' or 'a b'."),
+    dataset: str = typer.Option(..., "--dataset", help="The dataset store whose held-out sequences are compared."),
+    out: Path = typer.Option(Path("simgen-compare"), "--out", help="Output folder (tables, plot, USD, MP4)."),
+    test_shapes: Optional[str] = typer.Option(None, "--test-shapes", help="Also hold out these shape ids, 'a,b' or "
+                                              "'a b' (default: the test motions only)."),
+    device: str = typer.Option("cpu", "--device", help="Torch device the models run and are timed on."),
+    no_video: bool = typer.Option(False, "--no-video", help="Skip the MP4 (it needs pyvista and OpenGL)."),
+    max_sequences: Optional[int] = typer.Option(None, "--max-sequences", help="At most N sequences per test group.",
+                                                rich_help_panel=EXPERT),
+    inside_stride: int = typer.Option(1, "--inside-stride", help="Count cloth inside the body every N-th frame.",
+                                      rich_help_panel=EXPERT),
+    timing_frames: int = typer.Option(100, "--timing-frames", help="Frames timed per method.", rich_help_panel=EXPERT),
+    max_frames: Optional[int] = _T_MAXF, body: Optional[str] = _T_BODY,
+) -> None:
+    """SNUG, its ablations, the vertex-L2 GRU, supervised models, LBS and the simulation (thesis Tables 5.1-5.3)."""
+    from simgen.learn._cli import run_eval_compare
+
+    _warp_setup(device)
+    run_eval_compare(models=models, dataset=dataset, out=out, test_shapes=test_shapes, device=device,
+                     max_sequences=max_sequences, max_frames=max_frames, inside_stride=inside_stride,
+                     timing_frames=timing_frames, video=not no_video, body=body, echo=typer.echo,
+                     progress_factory=_progress)
 
 
 @eval_app.command("garment")

@@ -16,12 +16,13 @@ __all__ = ["export_sequence", "pack_sequences", "open_pack", "PackedSequences"]
 
 
 def export_sequence(dataset, seq_id: str, out_dir, *, usd: bool = True, mp4: bool = True, body=None,
-                    size: tuple[int, int] = (640, 480), progress=None) -> dict:
+                    size: tuple[int, int] = (1280, 720), progress=None) -> dict:
     """Write OUT_DIR/<seq_id>.usdc and/or OUT_DIR/<seq_id>.mp4; returns {"usd": path|None, "mp4": path|None}.
 
     dataset: a :class:`simgen.dataset.Dataset`, a store path, or a pack (.npz, :func:`pack_sequences`);
     body: BodyModel or source to use instead of the store's recorded one (it must have the same hash);
-    progress(done, total) while posing and rendering.
+    progress(done, total) while posing and rendering. The MP4 is framed by
+    :func:`simgen.io.render.follow_cameras` with a legend (sequence, garment, shape, motion, frame).
     """
     from simgen.dataset.reader import Dataset, open_dataset
     from simgen.io.usd import MeshTrack
@@ -54,10 +55,14 @@ def export_sequence(dataset, seq_id: str, out_dir, *, usd: bool = True, mp4: boo
         paths["usd"] = write_usd(out_dir / f"{seq_id}.usdc", tracks, fps=fps,
                                  metadata={k: v for k, v in meta.items() if v is not None})
     if mp4:
-        from simgen.io.render import render_sequence
+        from simgen.io.render import render_sequence, scene_legend
 
-        paths["mp4"] = render_sequence(out_dir / f"{seq_id}.mp4", tracks, fps=fps, size=size,
-                                       title=f"{seq_id}", progress=progress)
+        a = seq["attrs"]
+        betas = np.asarray(seq["betas"], dtype=np.float64)
+        betas = betas.reshape(-1, betas.shape[-1])[-1]  # (B,), or the last frame's of (T, B)
+        legend = {"sequence": seq_id, **scene_legend(garment=ds.garment_name, betas=betas, motion=a.get("motion"))}
+        paths["mp4"] = render_sequence(out_dir / f"{seq_id}.mp4", tracks, fps=fps, size=size, legend=legend,
+                                       progress=progress)
     return paths
 
 

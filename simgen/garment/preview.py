@@ -67,20 +67,20 @@ def joint_colors(skin_weights, *, mode: str = "dominant") -> np.ndarray:
     raise InputError(f"mode must be 'dominant' or 'blend', got {mode!r}")
 
 
-def render_skin_weights(garment, body, path_png, *, mode: str = "dominant", size: tuple[int, int] = (960, 720),
+def render_skin_weights(garment, body, path_png, *, mode: str = "dominant", size: tuple[int, int] = (1280, 720),
                         azimuth: float = 30.0) -> Path:
     """Render the garment on the template body in rest pose, coloured by its skinning weights.
 
-    The body is drawn in its neutral colour; mode as in :func:`joint_colors`. Returns the PNG path.
+    The body is drawn in its neutral colour; mode as in :func:`joint_colors`; the view is
+    :func:`simgen.io.render.follow_cameras`' turned ``azimuth`` deg. Returns the PNG path.
     """
-    from simgen.io.render import default_camera, render_frame
+    from simgen.io.render import follow_cameras, render_frame
     from simgen.io.usd import MeshTrack
 
     tracks = [MeshTrack("body", body.v_template, body.faces, role="body"),
               MeshTrack("garment", garment.vertices, garment.faces,
                         colors=joint_colors(garment.skin_weights, mode=mode), role="garment")]
-    bounds = np.stack([body.v_template.min(axis=0), body.v_template.max(axis=0)])
-    cam = default_camera(bounds, aspect=size[0] / size[1], azimuth=azimuth)
+    cam = follow_cameras(tracks, aspect=size[0] / size[1], azimuth=azimuth)[0]
     return render_frame(path_png, tracks, camera=cam, size=size,
                         title=f"{garment.name}: skinning weights ({mode} joint)")
 
@@ -92,7 +92,7 @@ def _prim_name(text: str) -> str:
 
 def preview_garment(garment, body, clip, *, out_dir, betas=None, video: bool = True,
                     frames: int | Sequence[int] | None = None, progress: Callable[[int, int], None] | None = None,
-                    size: tuple[int, int] = (640, 480), color_by_joint: bool = False,
+                    size: tuple[int, int] = (1280, 720), color_by_joint: bool = False,
                     shape_method: str = "diffused") -> dict[str, Path]:
     """Write the LBS preview of a garment on a body following a motion clip.
 
@@ -108,7 +108,9 @@ def preview_garment(garment, body, clip, *, out_dir, betas=None, video: bool = T
             every k-th frame (a regular stride) is written at the clip's fps / k, so the preview
             keeps the clip's speed; other selections at the clip's fps.
         progress: called as progress(done, total) after each rendered video frame.
-        size: video and picture size (width, height) in pixels.
+        size: video and picture size (width, height) in pixels. The camera follows the body
+            (:func:`simgen.io.render.follow_cameras`); a legend names garment, shape, motion and
+            frame; the picture is the middle frame.
         color_by_joint: colour the garment by its dominant skinning joint instead of one colour.
         shape_method: "diffused" (default) or "closest" transfer of the body's shape offset to
             the garment (see the module docstring).
@@ -125,7 +127,7 @@ def preview_garment(garment, body, clip, *, out_dir, betas=None, video: bool = T
     from simgen.garment.garment import Garment
     from simgen.garment.library import check_garment_body, load_garment
     from simgen.garment.skinning import lbs, shape_offsets
-    from simgen.io.render import default_camera, render_frame, render_sequence, sequence_bounds
+    from simgen.io.render import render_frame, render_sequence, scene_legend
     from simgen.io.usd import MeshTrack, validate_usd, write_usd
     from simgen.motion import MotionClip, load_motion
 
@@ -197,11 +199,11 @@ def preview_garment(garment, body, clip, *, out_dir, betas=None, video: bool = T
         raise RuntimeError(f"{usd_path}: the written USD fails validation: {errors[0]}")
     result = {"usd": usd_path}
 
-    cam = default_camera(sequence_bounds(tracks), aspect=width / height)
-    title = f"{garment.name} on {body.name}: {clip.name} (LBS)"
-    result["png"] = render_frame(out_dir / f"{stem}.png", tracks, camera=cam, size=(width, height), title=title,
-                                 frame=len(idx) // 2)
+    legend = scene_legend(garment=f"{garment.name} (LBS, no physics)", betas=b[0], motion=clip.name)
+    labels = [f"{k} / {len(idx) - 1}  (clip frame {i})" for k, i in enumerate(idx)]
+    result["png"] = render_frame(out_dir / f"{stem}.png", tracks, size=(width, height), frame=len(idx) // 2,
+                                 legend=legend, frame_label=labels[len(idx) // 2], fps=fps)
     if video:
         result["video"] = render_sequence(out_dir / f"{stem}.mp4", tracks, fps=fps, size=(width, height),
-                                          camera=cam, title=title, progress=progress)
+                                          legend=legend, frame_labels=labels, progress=progress)
     return result

@@ -1,11 +1,17 @@
 """Offscreen rendering of bodies and garments: one frame to PNG, a sequence to H.264 MP4.
 
 Scenes follow docs/architecture.md ("Units and axes"): metres, Y up, a checker floor at y = 0.
-The camera is fixed for a whole
-sequence (:func:`default_camera` frames the union of every frame's bounds), so motion reads as
-motion of the body, not of the camera. Bodies are drawn in a neutral skin tone, garments in
-distinct colours (:data:`simgen.io.usd.ROLE_COLORS`, :data:`GARMENT_PALETTE`), smooth-shaded under
-a light kit.
+Bodies are drawn in a neutral skin tone, garments in distinct colours
+(:data:`simgen.io.usd.ROLE_COLORS`, :data:`GARMENT_PALETTE`), smooth-shaded under a light kit.
+
+Framing (one implementation, :func:`follow_cameras`, used whenever a caller passes no camera): a
+3/4 front view whose camera follows the body's root across the floor (the horizontal centroid of
+the body meshes per frame, smoothed with a Gaussian of 0.5 s so the camera glides instead of
+jittering with the gait) at one distance for the whole sequence, chosen so that everything drawn
+spans :data:`BODY_FILL` (80 %) of the image height at its tallest. The floor scrolls under the
+body, so motion still reads as motion. Pictures and videos are :data:`DEFAULT_SIZE` (1280x720)
+unless a size is given. A small legend (``legend=``: garment, shape, motion, ... and the frame
+number; :func:`scene_legend` builds the usual one) sits in the upper-left corner.
 
 Headless use: with no ``DISPLAY``/``WAYLAND_DISPLAY`` this module points VTK at its EGL render
 window (Mesa's software EGL is enough: Debian packages libegl1, libegl-mesa0, libgl1-mesa-dri, as
@@ -21,7 +27,7 @@ import ctypes
 import math
 import os
 import sys
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -33,14 +39,27 @@ from simgen.errors import InputError
 from simgen.io.usd import ROLE_COLORS, MeshTrack
 
 __all__ = [
+    "BODY_FILL",
+    "DEFAULT_SIZE",
     "GARMENT_PALETTE",
     "Camera",
     "RenderError",
     "default_camera",
+    "describe_betas",
+    "follow_cameras",
+    "frame_text",
     "render_frame",
     "render_sequence",
+    "scene_legend",
     "sequence_bounds",
 ]
+
+#: Image (width, height) [px] of every render that does not ask for another size.
+DEFAULT_SIZE: tuple[int, int] = (1280, 720)
+#: Share of the image height that the scene spans at its tallest frame (:func:`follow_cameras`).
+BODY_FILL = 0.8
+#: [s] standard deviation of the Gaussian that smooths the followed root path.
+FOLLOW_SMOOTHING = 0.5
 
 #: Colours of successive garments in one scene (RGB in [0, 1]); the first is the garment role's.
 GARMENT_PALETTE: tuple[tuple[float, float, float], ...] = (
@@ -90,6 +109,17 @@ class Camera:
     view_angle: float = 30.0
 
 
+def _view_basis(azimuth: float, elevation: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Unit vectors (back, right, up) of a camera turned ``azimuth`` deg about +Y from +Z towards
+    +X and raised ``elevation`` deg: ``back`` points from the scene to the camera."""
+    az, el = math.radians(azimuth), math.radians(elevation)
+    back = np.array([math.sin(az) * math.cos(el), math.sin(el), math.cos(az) * math.cos(el)])
+    right = np.cross([0.0, 1.0, 0.0], back)
+    right /= np.linalg.norm(right)
+    up = np.cross(back, right)
+    return back, right, up
+
+
 def default_camera(
     bounds: Any,
     *,
@@ -99,7 +129,8 @@ def default_camera(
     view_angle: float = 30.0,
     margin: float = 0.08,
 ) -> Camera:
-    """A fixed 3/4 front view that keeps a whole box in the picture.
+    """A fixed 3/4 front view that keeps a whole box in the picture (for composed pictures such
+    as the docs' grids; renders of bodies take :func:`follow_cameras` by default).
 
     The camera looks at the centre of ``bounds`` from the front (+Z, where SMPL bodies face),
     turned ``azimuth`` degrees towards +X and raised ``elevation`` degrees, Y up. Its distance is
@@ -122,11 +153,7 @@ def default_camera(
         raise InputError(f"camera bounds must be a finite (2, 3) min/max box, got {np.shape(bounds)}")
     if not (aspect > 0 and 0 < view_angle < 170 and 0 <= margin < 0.5):
         raise InputError("camera aspect must be > 0, view_angle in (0, 170) deg, margin in [0, 0.5)")
-    az, el = math.radians(azimuth), math.radians(elevation)
-    back = np.array([math.sin(az) * math.cos(el), math.sin(el), math.cos(az) * math.cos(el)])
-    right = np.cross([0.0, 1.0, 0.0], back)
-    right /= np.linalg.norm(right)
-    up = np.cross(back, right)
+    back, right, up = _view_basis(azimuth, elevation)
 
     center = box.mean(axis=0)
     corners = np.array([[box[i, 0], box[j, 1], box[k, 2]] for i in (0, 1) for j in (0, 1) for k in (0, 1)])
@@ -140,6 +167,140 @@ def default_camera(
     distance = max(distance, float(np.max(z)) + 0.1, 0.1)
     position = center + distance * back
     return Camera(_floats(position), _floats(center), _floats(up), float(view_angle))
+
+
+def follow_cameras(
+    tracks: Sequence[MeshTrack],
+    *,
+    aspect: float = DEFAULT_SIZE[0] / DEFAULT_SIZE[1],
+    fps: float = 30.0,
+    fill: float = BODY_FILL,
+    azimuth: float = 30.0,
+    elevation: float = 10.0,
+    view_angle: float = 30.0,
+    smoothing: float = FOLLOW_SMOOTHING,
+) -> list[Camera]:
+    """One camera per frame that follows the body and keeps it at ``fill`` of the image height.
+
+    This is the framing of every render made without an explicit camera (the demo, ``simgen
+    simulate``, ``render``, ``garment preview``, ``dataset export``): keep it the only one.
+
+    - Root: per frame, the horizontal (x, z) centroid of the vertices of the tracks whose role is
+      "body" (of all tracks when none is), smoothed over time by a Gaussian of ``smoothing``
+      seconds (its ends extended by point reflection, so a steady walk is followed without lag).
+      The camera moves with it; its height, direction and distance stay fixed.
+    - Direction: a 3/4 front view, turned ``azimuth`` deg from +Z towards +X and raised
+      ``elevation`` deg (as :func:`default_camera`).
+    - Distance and height: over every frame and every vertex of every track, measured from the
+      followed root, the smallest distance at which the highest and the lowest points project
+      ``fill`` of the image height apart (centred vertically) and every point fits the width
+      (5 % free at the sides). So the tallest frame spans ``fill`` of the height; a frame where the
+      body crouches or jumps spans less.
+
+    Args:
+        tracks: the meshes drawn; animated tracks must share one frame count T (static ones are
+            held).
+        aspect: image width / height.
+        fps: frame rate [1/s] of the tracks (the smoothing is in seconds).
+        fill: share of the image height spanned at the tallest frame, in (0, 1).
+        azimuth, elevation, view_angle: the view [deg].
+        smoothing: standard deviation [s] of the root path's Gaussian (0: follow every wobble).
+
+    Returns:
+        T cameras (1 when every track is static).
+    """
+    tracks = list(tracks)
+    if not tracks or not all(isinstance(t, MeshTrack) for t in tracks):
+        raise InputError("follow_cameras needs a non-empty list of MeshTrack objects")
+    counts = {t.num_frames for t in tracks if not t.static}
+    if len(counts) > 1:
+        raise InputError(f"animated mesh tracks have different frame counts {sorted(counts)}")
+    if not (aspect > 0 and 0 < view_angle < 170 and 0 < fill < 1 and fps > 0 and smoothing >= 0):
+        raise InputError("camera aspect and fps must be > 0, view_angle in (0, 170) deg, fill in (0, 1), "
+                         "smoothing >= 0")
+    n_frames = counts.pop() if counts else 1
+    subject = [t for t in tracks if t.role == "body"] or tracks
+
+    def at(track: MeshTrack, k: int) -> np.ndarray:
+        return np.asarray(track.frame(0 if track.static else k), dtype=np.float64)
+
+    root = np.array([np.concatenate([at(t, k) for t in subject]).mean(axis=0)[[0, 2]] for k in range(n_frames)])
+    if not np.isfinite(root).all():
+        raise InputError("mesh points must be finite to frame them")
+    root = _smooth(root, smoothing * float(fps))
+
+    back, right, up = _view_basis(azimuth, elevation)
+    tan_v = math.tan(math.radians(view_angle) / 2) * fill
+    tan_h = math.tan(math.radians(view_angle) / 2) * aspect * 0.95
+    top, bottom, side, near = -np.inf, np.inf, -np.inf, -np.inf
+    for k in range(n_frames):
+        rel = np.concatenate([at(t, k) for t in tracks]) - [root[k, 0], 0.0, root[k, 1]]
+        x, y, z = rel @ right, rel @ up, rel @ back
+        # A point at camera-frame (x, y - s, z) (s: the look-at height along `up`) projects to
+        # (y - s) / (D - z). The highest at +tan_v and the lowest at -tan_v need
+        # D = (max(y + tan_v z) - min(y - tan_v z)) / (2 tan_v), s = their mean.
+        top = max(top, float(np.max(y + tan_v * z)))
+        bottom = min(bottom, float(np.min(y - tan_v * z)))
+        side = max(side, float(np.max(z + np.abs(x) / tan_h)))
+        near = max(near, float(np.max(z)))
+    distance = max((top - bottom) / (2.0 * tan_v), side, near + 0.1, 0.1)
+    # With a larger distance than the height needs (a wide pose), keep the scene centred.
+    shift = 0.5 * ((top - tan_v * distance) + (bottom + tan_v * distance))
+    cameras = []
+    for k in range(n_frames):
+        focal = np.array([root[k, 0], 0.0, root[k, 1]]) + shift * up
+        cameras.append(Camera(_floats(focal + distance * back), _floats(focal), _floats(up), float(view_angle)))
+    return cameras
+
+
+def _smooth(path: np.ndarray, sigma: float) -> np.ndarray:
+    """Gaussian smoothing of a path (T, k) along time with standard deviation ``sigma`` [frames].
+
+    The ends are extended by point reflection (x[-j] = 2 x[0] - x[j]), which keeps straight-line
+    motion straight (no lag at the ends, unlike repeating the end value)."""
+    path = np.asarray(path, dtype=np.float64)
+    n = len(path)
+    radius = min(int(math.ceil(3.0 * sigma)), n - 1)
+    if sigma <= 0 or radius < 1:
+        return path
+    kernel = np.exp(-0.5 * (np.arange(-radius, radius + 1) / sigma) ** 2)
+    kernel /= kernel.sum()
+    head = 2.0 * path[0] - path[radius:0:-1]
+    tail = 2.0 * path[-1] - path[-2:-radius - 2:-1]
+    padded = np.concatenate([head, path, tail])
+    return np.stack([np.convolve(padded[:, c], kernel, mode="valid") for c in range(path.shape[1])], axis=1)
+
+
+def describe_betas(betas: Any) -> str:
+    """A short text for a body shape, for legends: "mean shape (betas 0)", "betas 1.5, -0.5"
+    (the values up to the last non-zero one, 2 decimals), or, past four values, the non-zero ones
+    by index: "b0 1.5, b6 0.2" (at most four, then "+n"). betas: (B,), or None for the mean shape."""
+    b = np.zeros(1) if betas is None else np.atleast_1d(np.asarray(betas, dtype=np.float64))
+    if b.ndim != 1:
+        raise InputError(f"betas must be one shape vector (B,), got shape {b.shape}")
+    values = np.round(b, 2) + 0.0  # + 0.0: no "-0"
+    nonzero = np.flatnonzero(values)
+    if nonzero.size == 0:
+        return "mean shape (betas 0)"
+    if nonzero[-1] < 4:
+        return "betas " + ", ".join(f"{v:g}" for v in values[: nonzero[-1] + 1])
+    shown = ", ".join(f"b{i} {values[i]:g}" for i in nonzero[:4])
+    return f"betas {shown}" + (f" +{nonzero.size - 4}" if nonzero.size > 4 else "")
+
+
+def scene_legend(*, garment: str | None = None, betas: Any = None, motion: str | None = None,
+                 **more: str) -> dict[str, str]:
+    """The legend of a render: {"garment": NAME, "shape": :func:`describe_betas`, "motion": NAME}
+    plus ``more`` entries, in that order (None values left out). :func:`render_sequence` and
+    :func:`render_frame` add the frame number."""
+    out = {}
+    if garment is not None:
+        out["garment"] = str(garment)
+    out["shape"] = describe_betas(betas)
+    if motion is not None:
+        out["motion"] = str(motion)
+    out.update({k: str(v) for k, v in more.items() if v is not None})
+    return out
 
 
 def _floats(vector: np.ndarray) -> tuple[float, float, float]:
@@ -158,11 +319,14 @@ def render_frame(
     meshes: Sequence[MeshLike],
     *,
     camera: Camera | None = None,
-    size: tuple[int, int] = (960, 720),
+    size: tuple[int, int] = DEFAULT_SIZE,
     floor: bool = True,
     title: str | None = None,
     frame: int = 0,
     ambient_occlusion: bool = False,
+    legend: Mapping[str, str] | None = None,
+    frame_label: str | None = None,
+    fps: float = 30.0,
 ) -> Path:
     """Render meshes to a PNG.
 
@@ -173,13 +337,18 @@ def render_frame(
             RGB triple in [0, 1], per-vertex colours (V, 3), a role name ("body", "garment",
             "other") or None. Tuples without a colour: the first is drawn as a body, the others
             as garments.
-        camera: fixed camera; default :func:`default_camera` of the meshes' bounds.
+        camera: fixed camera; default: frame ``frame`` of :func:`follow_cameras` over all the
+            tracks' frames, so the picture is the same as that frame of :func:`render_sequence`.
         size: image (width, height) in pixels, each in [16, 8192].
         floor: draw the checker floor at y = 0.
-        title: text drawn in the upper-left corner.
+        title: text drawn in the upper-left corner (above the legend).
         frame: frame index used for MeshTrack entries.
         ambient_occlusion: darken creases and contact with the floor (screen-space ambient
             occlusion); about 5x slower.
+        legend: lines "key  value" drawn in the upper-left corner (:func:`scene_legend`), followed
+            by a "frame" line: ``frame_label``, or "k / T-1 (t s)".
+        frame_label: the frame line of the legend instead of the frame number.
+        fps: frame rate [1/s] of animated tracks: the frame line's time and the camera's smoothing.
 
     Returns:
         The path written.
@@ -195,12 +364,23 @@ def render_frame(
     for track, _ in items:
         if not track.static and not (0 <= frame < track.num_frames):
             raise InputError(f"frame {frame} is outside mesh {track.name!r}'s {track.num_frames} frames")
-    cam = camera if camera is not None else default_camera(_frame_bounds(items, frame), aspect=width / height)
+    _check_fps(fps)
+    tracks = [t for t, _ in items]
+    n_frames = max([t.num_frames for t in tracks if not t.static], default=1)
+    if camera is not None:
+        cam = camera
+    elif len({t.num_frames for t in tracks if not t.static}) <= 1:
+        cam = follow_cameras(tracks, aspect=width / height, fps=fps)[frame if n_frames > 1 else 0]
+    else:  # tracks of different lengths: frame this one frame alone
+        still = [MeshTrack(t.name, t.frame(frame), t.faces, role=t.role) for t in tracks]
+        cam = follow_cameras(still, aspect=width / height)[0]
     _check_camera(cam)
+    text = _legend_text(title, legend, frame_label if frame_label is not None
+                        else frame_text(frame, n_frames, fps) if legend else None)
 
-    scene = _Scene(items, (width, height), cam, floor=floor, title=title, ambient_occlusion=ambient_occlusion)
+    scene = _Scene(items, (width, height), floor=floor, ambient_occlusion=ambient_occlusion)
     try:
-        image = scene.draw(frame)
+        image = scene.draw(frame, cam, text)
     finally:
         scene.close()
 
@@ -221,12 +401,14 @@ def render_sequence(
     tracks: Sequence[MeshTrack],
     *,
     fps: float,
-    size: tuple[int, int] = (640, 480),
-    camera: Camera | None = None,
+    size: tuple[int, int] = DEFAULT_SIZE,
+    camera: Camera | Sequence[Camera] | None = None,
     floor: bool = True,
     title: str | None = None,
     progress: Progress | None = None,
     ambient_occlusion: bool = False,
+    legend: Mapping[str, str] | None = None,
+    frame_labels: Sequence[str] | None = None,
 ) -> Path:
     """Render mesh tracks to an H.264 MP4 (yuv420p), one video frame per track frame.
 
@@ -238,28 +420,28 @@ def render_sequence(
         fps: frame rate of the video (> 0), normally the sequence's.
         size: video (width, height) in pixels, each in [16, 8192]; odd values are rounded up to
             even, which yuv420p needs.
-        camera: fixed camera; default :func:`default_camera` of :func:`sequence_bounds`, so the
-            camera does not move during the sequence.
+        camera: one fixed camera, or one camera per frame (T of them); default
+            :func:`follow_cameras` (follows the body, which spans 80 % of the height).
         floor: draw the checker floor at y = 0.
-        title: text drawn in the upper-left corner of every frame.
+        title: text drawn in the upper-left corner of every frame (above the legend).
         progress: called as ``progress(done, total)`` after each frame is encoded.
         ambient_occlusion: darken creases and contact with the floor (screen-space ambient
             occlusion); about 5x slower per frame.
+        legend: lines "key  value" in the upper-left corner (:func:`scene_legend`), followed by a
+            "frame" line per frame: ``frame_labels[k]``, or "k / T-1 (t s)".
+        frame_labels: T texts for the legend's frame line (e.g. to name start-protocol frames).
 
     Returns:
         The path written.
 
     Raises:
-        InputError: bad tracks, fps, size or path. RenderError: no OpenGL for offscreen use.
+        InputError: bad tracks, fps, size, cameras or path. RenderError: no OpenGL for offscreen use.
     """
     path = _check_path(path_mp4, ".mp4")
     width, height = _check_size(size)
     width += width % 2
     height += height % 2
-    if isinstance(fps, bool) or not isinstance(fps, (int, float, np.integer, np.floating)):
-        raise InputError(f"fps must be a number, got {fps!r}")
-    if not math.isfinite(fps) or fps <= 0:
-        raise InputError(f"fps must be a positive number, got {fps}")
+    _check_fps(fps)
     tracks = list(tracks)
     if not tracks or not all(isinstance(t, MeshTrack) for t in tracks):
         raise InputError("render_sequence needs a non-empty list of MeshTrack objects")
@@ -268,12 +450,28 @@ def render_sequence(
         raise InputError(f"animated mesh tracks have different frame counts {sorted(counts)}")
     n_frames = counts.pop() if counts else 1
     items = _items_from_tracks(tracks)
-    cam = camera if camera is not None else default_camera(sequence_bounds(tracks), aspect=width / height)
-    _check_camera(cam)
+    if camera is None:
+        cameras = follow_cameras(tracks, aspect=width / height, fps=fps)
+    elif isinstance(camera, Camera):
+        cameras = [camera]
+    else:
+        cameras = list(camera) if isinstance(camera, Sequence) else [camera]
+        if len(cameras) != n_frames:
+            raise InputError(f"camera: give one Camera or one per frame ({n_frames}), got {len(cameras)}")
+    for cam in cameras:
+        _check_camera(cam)
+    if frame_labels is not None:
+        frame_labels = [str(label) for label in frame_labels]
+        if len(frame_labels) != n_frames:
+            raise InputError(f"frame_labels: give one per frame ({n_frames}), got {len(frame_labels)}")
+
+    def text(k: int) -> str | None:
+        label = frame_labels[k] if frame_labels is not None else (frame_text(k, n_frames, fps) if legend else None)
+        return _legend_text(title, legend, label)
 
     import imageio_ffmpeg
 
-    scene = _Scene(items, (width, height), cam, floor=floor, title=title, ambient_occlusion=ambient_occlusion)
+    scene = _Scene(items, (width, height), floor=floor, ambient_occlusion=ambient_occlusion)
     tmp = temp_path_beside(path)
     try:
         writer = imageio_ffmpeg.write_frames(
@@ -292,7 +490,8 @@ def render_sequence(
         writer.send(None)
         try:
             for i in range(n_frames):
-                writer.send(np.ascontiguousarray(scene.draw(i)))
+                image = scene.draw(i, cameras[i if len(cameras) > 1 else 0], text(i))
+                writer.send(np.ascontiguousarray(image))
                 if progress is not None:
                     progress(i + 1, n_frames)
         finally:
@@ -306,20 +505,41 @@ def render_sequence(
     return path
 
 
+def frame_text(frame: int, n_frames: int, fps: float) -> str:
+    """The legend's frame line: "k / T-1 (t s)" of a sequence, "k" of a still."""
+    if n_frames <= 1:
+        return f"{frame}"
+    return f"{frame} / {n_frames - 1}  ({frame / fps:.2f} s)"
+
+
+def _legend_text(title: str | None, legend: Mapping[str, str] | None, frame_line: str | None) -> str | None:
+    """The text block of the upper-left corner: the title, then "key  value" lines."""
+    lines = [str(title)] if title else []
+    rows = list((legend or {}).items()) + ([("frame", frame_line)] if frame_line is not None else [])
+    width = max((len(str(k)) for k, _ in rows), default=0)
+    lines += [f"{str(k):<{width}}  {v}" for k, v in rows]
+    return "\n".join(lines) if lines else None
+
+
+def _check_fps(fps: Any) -> None:
+    if isinstance(fps, bool) or not isinstance(fps, (int, float, np.integer, np.floating)):
+        raise InputError(f"fps must be a number, got {fps!r}")
+    if not math.isfinite(fps) or fps <= 0:
+        raise InputError(f"fps must be a positive number, got {fps}")
+
+
 # --- scene ------------------------------------------------------------------------------------
 
 
 class _Scene:
-    """One offscreen plotter whose meshes are updated in place frame after frame."""
+    """One offscreen plotter whose meshes, camera and legend are updated in place frame after frame."""
 
     def __init__(
         self,
         items: list[_Item],
         size: tuple[int, int],
-        camera: Camera,
         *,
         floor: bool,
-        title: str | None,
         ambient_occlusion: bool,
     ) -> None:
         _prepare_headless()
@@ -361,17 +581,34 @@ class _Scene:
         if floor:
             plotter.add_mesh(_floor_mesh(_frame_bounds(items, None)), scalars="rgb", rgb=True,
                              ambient=0.35, diffuse=0.7, specular=0.0)
-        if title:
-            plotter.add_text(title, position="upper_left", font_size=max(8, size[1] // 60), color="black")
+        self._text = None
 
-        cam = plotter.camera
-        cam.position = camera.position
-        cam.focal_point = camera.focal_point
-        cam.up = camera.view_up
-        cam.view_angle = camera.view_angle
+    def _legend(self, text: str | None) -> None:
+        """Show ``text`` in the upper-left corner: monospaced, dark on a light translucent box."""
+        if text is None:
+            if self._text is not None:
+                self._text.SetVisibility(False)
+            return
+        # One space of padding around the text inside its box.
+        padded = "\n".join(f" {line} " for line in text.split("\n"))
+        if self._text is None:
+            width, height = self._size
+            font = max(6, round(height / 72))
+            actor = self._plotter.add_text(padded, position=(round(font * 0.8), height - round(font * 0.8)),
+                                           font_size=font, color=(0.08, 0.08, 0.08), font="courier")
+            prop = actor.GetTextProperty()
+            prop.SetVerticalJustificationToTop()
+            prop.SetJustificationToLeft()
+            prop.SetBackgroundColor(1.0, 1.0, 1.0)
+            prop.SetBackgroundOpacity(0.72)
+            prop.SetLineSpacing(1.15)
+            self._text = actor
+        self._text.SetInput(padded)
+        self._text.SetVisibility(True)
 
-    def draw(self, frame: int) -> np.ndarray:
-        """Pose every mesh at ``frame`` and return the image, shape (H, W, 3) uint8."""
+    def draw(self, frame: int, camera: Camera, text: str | None = None) -> np.ndarray:
+        """Pose every mesh at ``frame``, look through ``camera``, show ``text`` in the corner, and
+        return the image, shape (H, W, 3) uint8."""
         for (track, _), poly in zip(self._items, self._polys):
             if track.static and frame > 0:
                 continue
@@ -382,7 +619,13 @@ class _Scene:
             colors = track.frame_colors(frame)
             if colors is not None and track.colors.ndim == 3:
                 poly.point_data["rgb"] = _to_uint8(colors)
-        # Near and far planes follow the moving meshes and the floor; the camera itself stays put.
+        cam = self._plotter.camera
+        cam.position = camera.position
+        cam.focal_point = camera.focal_point
+        cam.up = camera.view_up
+        cam.view_angle = camera.view_angle
+        self._legend(text)
+        # Near and far planes follow the moving meshes and the floor.
         self._plotter.renderer.ResetCameraClippingRange()
         self._plotter.render()
         image = self._plotter.screenshot(return_img=True)
