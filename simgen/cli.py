@@ -338,7 +338,7 @@ def demo(
     the start protocol and the walk's first 0.9 s (arms coming down from the
     T-pose) are simulated and saved but shown only with --with-start. The PNG
     is the middle frame of the video's walk.
-    About 2.5 minutes on a 2-core CPU (2 min 25 s measured, kernels cached);
+    About 2.5 minutes on a 2-core CPU (2 min 36 s measured, kernels cached);
     the first run also compiles Warp's kernels (~30 s).
     """
     from simgen.motion import load_motion
