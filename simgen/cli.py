@@ -796,7 +796,7 @@ def export_usd(
 @app.command("view")
 def view_cmd(
     path: str = typer.Argument(..., help="A simulation .npz or .usdc, a dataset store (or a folder of stores), "
-                               "or an `eval garment` output folder."),
+                               "or an `eval garment` / `eval compare` output folder."),
     port: int = typer.Option(8080, "--port", help="HTTP port (the next free one if taken; 0: any free port)."),
     host: str = typer.Option("127.0.0.1", "--host", help="Address to serve on (0.0.0.0: every interface)."),
     garment: Optional[str] = typer.Option(None, "--garment", help="Dataset folder: preselect this garment's store "

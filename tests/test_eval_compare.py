@@ -154,6 +154,12 @@ def test_eval_compare_writes_every_table(store, models, tmp_path, capsys):
     assert meshes["garment_snug"].colors is not None and meshes["garment_ground_truth"].colors is None
     if video:
         assert (out / "compare.mp4").stat().st_size > 1000
+    # simgen view opens the folder: one garment track per method, side by side.
+    from simgen.view.sources import open_source
+
+    source = open_source(out)
+    scene = source.load(source.select())
+    assert source.kind == "eval compare" and len(scene.tracks) == len(keys)
 
 
 def _can_render() -> bool:

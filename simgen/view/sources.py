@@ -17,10 +17,12 @@ dropdowns such as garment, shape, motion), lists the options of each for the cur
 - :class:`EvalGarmentSource`: an ``simgen eval garment`` output folder (its metrics.json names the
   model folder and the dataset); ground truth, model and LBS come from
   :func:`simgen.learn.compare.compare_tracks`; dropdowns motion, shape.
+- :class:`EvalCompareSource`: an ``simgen eval compare`` output folder: its compare.usdc, every
+  model beside the simulation and LBS.
 
 :func:`open_source` takes the first class in :data:`SOURCES` whose ``accepts(path)`` is true. A new
-kind of input (say, an ``eval compare`` folder with several models) is one more Source subclass
-whose ``load`` returns a Scene with one track per model, added with :func:`register_source`.
+kind of input is one more Source subclass whose ``load`` returns a Scene with one track per model,
+added with :func:`register_source`.
 """
 
 from __future__ import annotations
@@ -34,7 +36,7 @@ import numpy as np
 from simgen.errors import InputError
 
 __all__ = ["GarmentTrack", "Scene", "Source", "SimulationSource", "UsdSource", "DatasetSource",
-           "EvalGarmentSource", "SOURCES", "register_source", "open_source", "scene_from_mesh_tracks"]
+           "EvalGarmentSource", "EvalCompareSource", "SOURCES", "register_source", "open_source", "scene_from_mesh_tracks"]
 
 USD_SUFFIXES = (".usd", ".usdc", ".usda")
 
@@ -353,8 +355,24 @@ class EvalGarmentSource(Source):
         return loader(folder, identity=data.identity, body=body_for_identity(data.identity))
 
 
+class EvalCompareSource(Source):
+    """An ``simgen eval compare --out`` folder: its compare.usdc (the simulation, every model and LBS
+    side by side, coloured by error) titled from compare.json."""
+
+    kind = "eval compare"
+
+    @classmethod
+    def accepts(cls, path: Path) -> bool:
+        return path.is_dir() and (path / "compare.json").is_file() and (path / "compare.usdc").is_file()
+
+    def load(self, selection: dict) -> Scene:
+        scene = UsdSource(self.path / "compare.usdc").load({})
+        scene.title = f"{self.path.name}: {' | '.join(t.label for t in scene.tracks)}"
+        return scene
+
+
 # ------------------------------------------------------------------------------------ dispatch
-SOURCES: list[type[Source]] = [SimulationSource, UsdSource, EvalGarmentSource, DatasetSource]
+SOURCES: list[type[Source]] = [SimulationSource, UsdSource, EvalGarmentSource, EvalCompareSource, DatasetSource]
 
 
 def register_source(cls: type[Source], *, first: bool = True) -> type[Source]:
@@ -373,4 +391,4 @@ def open_source(path) -> Source:
         if cls.accepts(p):
             return cls(p)
     raise InputError(f"{p} is not something simgen view opens (a simulation .npz, a simgen USD file, a dataset "
-                     "store or an `eval garment` folder)")
+                     "store, an `eval garment` or an `eval compare` folder)")
