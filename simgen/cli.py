@@ -61,7 +61,7 @@ COMPILE_NOTICE = "compiling kernels (first run only, ~30 s)"
 #: "number" options collect the numbers that follow (negative ones too), "name" options every word
 #: up to the next option.
 MULTI_VALUE_OPTIONS = {"--betas": "number", "--motions": "name", "--shapes": "name", "--test-shapes": "name",
-                       "--models": "name"}
+                       "--models": "name", "--test-motions": "name", "--test-subjects": "name"}
 _NUMBER = re.compile(r"[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?")
 
 
@@ -1098,6 +1098,35 @@ def train_gru_l2_cmd(
                      lr=lr, features=features, split=split, test_shapes=test_shapes, time_budget=time_budget,
                      restart=restart, seed=seed, max_frames=max_frames, body=body, echo=typer.echo,
                      progress_factory=_progress)
+
+
+@train_app.command("softtissue")
+def train_softtissue_cmd(
+    data: str = typer.Option(..., "--data", help="'synthetic' (a synthetic test signal on the bundled body) or a "
+                             "Dyna .h5 file (dyna_female.h5 / dyna_male.h5; needs --body)."),
+    out: Path = typer.Option(..., "--out", help="Model folder (the model goes to OUT/softtissue/)."),
+    body: Optional[str] = typer.Option(None, "--body", help="SMPL body file (.pkl/.npz) for a Dyna file."),
+    device: str = _T_DEVICE, time_budget: Optional[float] = _T_BUDGET, restart: bool = _T_RESTART,
+    max_frames: Optional[int] = _T_MAXF,
+    test_motions: Optional[str] = typer.Option(None, "--test-motions", help="Held-out motions, 'a,b' or 'a b'."),
+    test_subjects: Optional[str] = typer.Option(None, "--test-subjects", help="Held-out subject ids, 'a,b' or 'a b'."),
+    pose_epochs: Optional[int] = typer.Option(None, "--pose-epochs", help="Pose AE epochs (20).",
+                                              rich_help_panel=EXPERT),
+    ae_epochs: Optional[int] = typer.Option(None, "--ae-epochs", help="Soft-tissue AE epochs (1000).",
+                                            rich_help_panel=EXPERT),
+    reg_epochs: Optional[int] = typer.Option(None, "--reg-epochs", help="Regressor epochs (100).",
+                                             rich_help_panel=EXPERT),
+    ae_latent: Optional[int] = typer.Option(None, "--ae-latent", help="Soft-tissue code size (100).",
+                                            rich_help_panel=EXPERT),
+    seed: Optional[int] = typer.Option(None, "--seed", help="Random seed (0)."),
+) -> None:
+    """Train SoftSMPL (thesis ch. 3): pose AE, soft-tissue AE, GRU regressor; resumes a run found in --out."""
+    from simgen.learn.softtissue._cli import run_train_softtissue
+
+    run_train_softtissue(data=data, body=body, out=out, device=device, time_budget=time_budget, restart=restart,
+                         max_frames=max_frames, test_motions=test_motions, test_subjects=test_subjects,
+                         pose_epochs=pose_epochs, ae_epochs=ae_epochs, reg_epochs=reg_epochs, ae_latent=ae_latent,
+                         seed=seed, echo=typer.echo, progress_factory=_progress)
 
 
 @eval_app.command("compare")

@@ -1,0 +1,65 @@
+"""`simgen train softtissue`: the command's body, kept out of simgen/cli.py."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+from simgen.errors import InputError
+
+__all__ = ["run_train_softtissue", "load_softtissue_source"]
+
+
+def load_softtissue_source(data: str, body_file: str | None, *, max_frames: int | None = None, device: str = "cpu",
+                           progress=None):
+    """(SoftTissueData, BodyModel) of a ``--data`` value: "synthetic" (the bundled open body and the
+    synthetic test signal of :func:`~simgen.learn.softtissue.data.synthetic_softtissue_data`) or a
+    Dyna .h5 file, read with the SMPL body file ``body_file`` (:func:`~simgen.learn.softtissue.dyna.read_dyna`)."""
+    from simgen.body import load
+
+    if data == "synthetic":
+        from simgen.learn.softtissue.data import synthetic_softtissue_data
+
+        body = load(body_file) if body_file else load("open")
+        return synthetic_softtissue_data(body, frames=max_frames or 60), body
+    path = Path(data)
+    if path.suffix.lower() not in (".h5", ".hdf5"):
+        raise InputError(f"--data must be 'synthetic' or a Dyna .h5 file, got {data!r}")
+    if not path.is_file():
+        raise InputError(f"--data {data} does not exist")
+    if not body_file:
+        raise InputError("--data with a Dyna file needs --body SMPL_FILE (your SMPL .pkl or .npz: Dyna's meshes are "
+                         "in SMPL topology)")
+    from simgen.learn.softtissue.dyna import read_dyna
+
+    body = load(body_file)
+    return read_dyna(path, body, max_frames=max_frames, device=device, progress=progress), body
+
+
+def run_train_softtissue(*, data: str, body: str | None, out: Path, device: str, time_budget: float | None,
+                         restart: bool, max_frames: int | None, test_motions: str | None, test_subjects: str | None,
+                         pose_epochs: int | None, ae_epochs: int | None, reg_epochs: int | None,
+                         ae_latent: int | None, seed: int | None, echo, progress_factory) -> None:
+    from simgen.learn.softtissue.train import SoftTissueConfig, train_softtissue
+
+    if time_budget is not None and not time_budget > 0:
+        raise InputError(f"--time-budget must be positive seconds, got {time_budget}")
+    if max_frames is not None and max_frames < 1:
+        raise InputError(f"--max-frames must be at least 1, got {max_frames}")
+    given = {"pose_epochs": pose_epochs, "ae_epochs": ae_epochs, "reg_epochs": reg_epochs, "ae_latent": ae_latent,
+             "test_motions": test_motions, "test_subjects": test_subjects, "seed": seed}
+    config = replace(SoftTissueConfig(), **{k: v for k, v in given.items() if v is not None})
+    config.check()
+    progress, update = progress_factory(f"reading {data}", 1)
+    with progress:
+        dataset, model_body = load_softtissue_source(data, body, max_frames=max_frames, device=device,
+                                                     progress=lambda done, total: update(done, total))
+    total = config.pose_epochs + config.ae_epochs + config.reg_epochs
+    progress, update = progress_factory("training SoftSMPL", max(total, 1))
+    with progress:
+        result = train_softtissue(dataset, out, body=model_body, config=config, device=device,
+                                  time_budget=time_budget, resume=not restart,
+                                  progress=lambda done, total, info: update(int(done), total))
+    losses = ", ".join(f"{k} {v:.4g}" for k, v in result.losses.items() if v is not None)
+    echo(f"SoftSMPL: reached {result.stage}, stopped: {result.stopped}; last training losses: {losses or '-'}")
+    echo(f"model: {result.folder}")

@@ -1,0 +1,409 @@
+"""Training SoftSMPL (thesis section 3.4) and loading the trained model in one call.
+
+Three stages, in order, into one model folder OUT/softtissue/:
+
+1. ``pose_ae`` (:class:`~simgen.learn.softtissue.models.PoseAE`, eq. 3.13) on the poses of the
+   training sequences (the thesis uses SURREAL's 76k poses; here the dataset's own), Adam 1e-3.
+2. ``soft_ae`` (:class:`~simgen.learn.softtissue.models.SoftTissueAE`, eq. 3.8), first/last layers
+   from PCA of the training displacements, Adam 1e-4, batch 256, dropout 0.1.
+3. ``regressor`` (:class:`~simgen.learn.softtissue.models.SoftTissueRegressor`, eq. 3.10) on whole
+   training sequences (state reset per sequence), batch 10, Adam 1e-3; inputs gamma (eq. 3.11,
+   from the frozen pose encoder) and beta, targets the frozen soft-tissue encoder's codes.
+
+OUT/softtissue/ holds ``pose_ae/``, ``soft_ae/``, ``regressor/`` (each model.pt + config.json,
+:mod:`simgen.learn.checkpoint`), ``log.csv`` (one row per epoch of each stage), ``split.json`` and
+``train_state.pt`` (the stage, epoch and step reached, every model, the optimiser: rerunning resumes;
+other settings are refused unless ``resume=False``). Not done: motion transfer across subjects
+(section 3.3.2) and mirroring (section 3.4.1); see docs/learn.md.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from simgen._fileio import atomic_write_bytes
+from simgen.errors import InputError
+from simgen.learn.checkpoint import check_identity, load_model, read_config, save_model
+from simgen.learn.softtissue.data import SoftTissueData
+from simgen.learn.softtissue.models import (LAMBDA_NORM, PoseAE, SoftTissueAE, SoftTissueRegressor,
+                                            descriptor_size, motion_descriptor, pose_ae_loss,
+                                            reconstruction_loss, regression_loss)
+from simgen.learn.train import STATE_FILE, _device, _load_state, _Logger
+from simgen.settings import setting, validate
+
+__all__ = ["SOFTTISSUE_DIR", "STAGES", "SoftTissueConfig", "SoftSMPL", "SoftTissueResult", "train_softtissue",
+           "load_softtissue_model"]
+
+SOFTTISSUE_DIR = "softtissue"
+STAGES = ("pose_ae", "soft_ae", "regressor")
+_LOG_FIELDS = ["stage", "epoch", "lr", "loss", "surf", "norm", "mesh_path", "pose_path", "pos", "vel", "acc",
+               "val_loss", "seconds"]
+
+
+@dataclass
+class SoftTissueConfig:
+    """Every setting of a SoftSMPL run (thesis section 3.4; widths and depths are ours: the thesis
+    gives them only in figures)."""
+
+    pose_latent: int = setting(10, low=1, doc="size of the deshaped pose code (thesis: 10)")
+    pose_hidden: int = setting(256, low=1, doc="[units] of the pose autoencoder's hidden layers")
+    pose_lr: float = setting(1e-3, low=0.0, inclusive=False, doc="Adam learning rate of the pose autoencoder")
+    pose_epochs: int = setting(20, low=0, doc="[epochs] of the pose autoencoder (thesis: 20)")
+    pose_batch: int = setting(256, low=1, doc="[frames] per pose-autoencoder step")
+    ae_latent: int = setting(100, low=1, doc="size of the soft-tissue code (thesis Table 3.1: 25, 50, 100)")
+    ae_hidden: int = setting(256, low=1, doc="[units] inside each residual unit")
+    ae_blocks: int = setting(2, low=0, doc="residual units in the encoder and in the decoder")
+    ae_dropout: float = setting(0.1, low=0.0, high=1.0, doc="dropout inside the residual units (thesis: 0.1)")
+    ae_lr: float = setting(1e-4, low=0.0, inclusive=False, doc="Adam learning rate of the autoencoder")
+    ae_epochs: int = setting(1000, low=0, doc="[epochs] of the autoencoder (thesis: 1000)")
+    ae_batch: int = setting(256, low=1, doc="[frames] per autoencoder step (thesis: 256)")
+    lambda_norm: float = setting(LAMBDA_NORM, low=0.0, doc="weight of the face-normal term (eq. 3.8; 1000)")
+    reg_hidden: int = setting(256, low=1, doc="[units] of the regressor's GRU")
+    reg_layers: int = setting(1, low=1, doc="stacked GRU layers")
+    reg_lr: float = setting(1e-3, low=0.0, inclusive=False, doc="Adam learning rate of the regressor")
+    reg_epochs: int = setting(100, low=0, doc="[epochs] of the regressor (thesis: 100)")
+    reg_batch: int = setting(10, low=1, doc="[sequences] per regressor step (thesis: 10)")
+    test_motions: str = setting("", doc="held-out motion names, comma-separated")
+    test_subjects: str = setting("", doc="held-out subject ids, comma-separated")
+    seed: int = setting(0, doc="random seed")
+
+    def check(self) -> None:
+        validate(self, "soft-tissue setting")
+
+    def epochs(self, stage: str) -> int:
+        return {"pose_ae": self.pose_epochs, "soft_ae": self.ae_epochs, "regressor": self.reg_epochs}[stage]
+
+    def held_out(self) -> tuple[list[str], list[str]]:
+        def names(text):
+            return [n.strip() for n in text.replace(" ", ",").split(",") if n.strip()]
+
+        return names(self.test_motions), names(self.test_subjects)
+
+
+@dataclass
+class SoftTissueResult:
+    """folder; stage and epoch reached; steps (this call); seconds (this call); stopped ("epochs" or
+    "time budget"); losses: the last epoch's mean training loss of each stage trained."""
+
+    folder: Path
+    stage: str
+    epoch: int
+    steps: int
+    seconds: float
+    stopped: str
+    losses: dict
+
+
+# ------------------------------------------------------------------------------------ the model
+class SoftSMPL(torch.nn.Module):
+    """The runtime pipeline (thesis Fig. 3.2, eq. 3.9): Delta = D_soft(R(gamma, beta)) with gamma from
+    E_pose. ``predict`` plays one sequence from a zero state; ``posed`` adds Delta to the body."""
+
+    def __init__(self, pose_ae: PoseAE, soft_ae: SoftTissueAE, regressor: SoftTissueRegressor, identity: dict):
+        super().__init__()
+        self.pose_ae, self.soft_ae, self.regressor, self.identity = pose_ae, soft_ae, regressor, identity
+
+    @property
+    def device(self) -> torch.device:
+        return self.regressor.x_mean.device
+
+    def descriptor(self, poses: torch.Tensor, trans: torch.Tensor, fps: float) -> torch.Tensor:
+        """gamma (T, F) of one sequence: poses (T, 72) [rad], trans (T, 3) [m], fps [1/s]."""
+        codes = self.pose_ae.encode_pose(poses[:, 3:])
+        return motion_descriptor(codes, poses, trans, fps)
+
+    @torch.no_grad()
+    def predict(self, betas, poses, trans, fps: float) -> torch.Tensor:
+        """Delta [m], (T, V, 3), for betas (B,), poses (T, 72) [rad], trans (T, 3) [m] at ``fps``."""
+        dev = self.device
+        poses = torch.as_tensor(np.asarray(poses, dtype=np.float32), device=dev).reshape(-1, 72)
+        trans = torch.as_tensor(np.asarray(trans, dtype=np.float32), device=dev).reshape(-1, 3)
+        b = torch.zeros(self.regressor.num_betas, device=dev)
+        given = torch.as_tensor(np.asarray(betas, dtype=np.float32).reshape(-1))[:self.regressor.num_betas]
+        b[:len(given)] = given.to(dev)
+        gamma = self.descriptor(poses, trans, fps)
+        codes = self.regressor(gamma[None], b[None])[0]
+        return self.soft_ae.decode(codes)
+
+    @torch.no_grad()
+    def posed(self, body, betas, poses, trans, fps: float) -> torch.Tensor:
+        """Posed vertices [m], (T, V, 3): W(T + B_s + B_p + Delta) with the body model (eq. 3.2)."""
+        from simgen.body.torch_lbs import TorchBody
+        from simgen.learn.skinning import lbs_torch
+        from simgen.learn.softtissue.dyna import _rest_body
+
+        tb = TorchBody(body, device=self.device)
+        delta = self.predict(betas, poses, trans, fps)
+        p = torch.as_tensor(np.asarray(poses, dtype=np.float32), device=self.device).reshape(-1, 72)
+        t = torch.as_tensor(np.asarray(trans, dtype=np.float32), device=self.device).reshape(-1, 3)
+        b = torch.as_tensor(np.asarray(betas, dtype=np.float32), device=self.device).reshape(1, -1)
+        _, _, A = tb(b, p, t)
+        return lbs_torch(_rest_body(tb, b, p) + delta, tb.weights, A)
+
+
+def load_softtissue_model(folder: str | Path, *, identity: dict | None = None, device="cpu") -> SoftSMPL:
+    """Load a trained SoftSMPL model folder (OUT or OUT/softtissue) in one call, in eval mode.
+    identity: ``{"body": {"id", "hash"}}`` refuses a model trained for another body."""
+    folder = Path(folder)
+    if not (folder / "regressor").is_dir() and (folder / SOFTTISSUE_DIR).is_dir():
+        folder = folder / SOFTTISSUE_DIR
+    for name in STAGES:
+        if not (folder / name / "config.json").is_file():
+            raise InputError(f"{folder} holds no trained SoftSMPL {name} (run `simgen train softtissue` to the end)")
+    models = {name: load_model(folder / name, identity=identity, device=device) for name in STAGES}
+    model = SoftSMPL(models["pose_ae"], models["soft_ae"], models["regressor"],
+                     {"body": read_config(folder / "regressor").get("body", {})})
+    model.folder = folder
+    return model.to(device).eval()
+
+
+# ------------------------------------------------------------------------------------ training
+class _Run:
+    """The split, the tensors on the device and the three networks."""
+
+    def __init__(self, data: SoftTissueData, config: SoftTissueConfig, dev, body):
+        from simgen.body.torch_lbs import TorchBody
+
+        if not data.sequences:
+            raise InputError("soft-tissue data holds no sequence")
+        if body is None or body.hash != data.body.get("hash"):
+            raise InputError(f"the body model given ({getattr(body, 'name', None)!r}) is not the data's body "
+                             f"{data.body.get('id')!r} (hash {str(data.body.get('hash'))[:12]})")
+        self.data, self.dev = data, dev
+        self.train, self.test = data.split(*config.held_out())
+        self.identity = {"body": dict(data.body)}
+        self.tb = TorchBody(body, device=dev)
+        self.faces = torch.as_tensor(np.array(data.faces), device=dev)
+        self.template = torch.as_tensor(data.template, device=dev)
+        torch.manual_seed(config.seed)
+        V, B = data.num_vertices, data.num_betas
+        self.nets = {
+            "pose_ae": PoseAE(V, config.pose_latent, config.pose_hidden).to(dev),
+            "soft_ae": SoftTissueAE(V, config.ae_latent, config.ae_hidden, config.ae_blocks,
+                                    config.ae_dropout).to(dev),
+            "regressor": SoftTissueRegressor(descriptor_size(config.pose_latent), B, config.ae_latent,
+                                             config.reg_hidden, config.reg_layers).to(dev)}
+        self.nets["soft_ae"].init_pca(np.concatenate([s.displacements for s in self.train.sequences]))
+
+        def frames(d: SoftTissueData):
+            if not d.sequences:
+                return None
+            return (torch.as_tensor(np.concatenate([s.poses for s in d.sequences]), device=dev),
+                    torch.as_tensor(np.concatenate([s.displacements for s in d.sequences]), device=dev))
+
+        self.frames = frames(self.train)
+        self.test_frames = frames(_merge(self.test, data)) if self.test else None
+        self._seq_cache: dict = {}
+
+    def n_items(self, stage: str) -> int:
+        return len(self.train.sequences) if stage == "regressor" else len(self.frames[0])
+
+    def loss(self, stage: str, idx, config: SoftTissueConfig, test: bool = False) -> dict:
+        poses, disp = self.test_frames if test else self.frames
+        if stage == "pose_ae":
+            p = poses[idx]
+            meshes = PoseAE.mesh_input(self.tb, p)
+            return pose_ae_loss(self.nets["pose_ae"], meshes, p[:, 3:])
+        if stage == "soft_ae":
+            d = disp[idx]
+            return reconstruction_loss(d, self.nets["soft_ae"](d), self.template, self.faces, config.lambda_norm)
+        gamma, betas, target, mask = self.sequences(_merge(self.test, self.data) if test else self.train, idx)
+        return regression_loss(self.nets["regressor"](gamma, betas), target, mask)
+
+    @torch.no_grad()
+    def sequences(self, d: SoftTissueData, idx):
+        """Padded (gamma (N, T, F), betas (N, B), target codes (N, T, K), mask (N, T)) of sequences idx."""
+        key = (id(d), tuple(int(i) for i in idx))
+        if key in self._seq_cache:
+            return self._seq_cache[key]
+        pose_ae, soft_ae = self.nets["pose_ae"].eval(), self.nets["soft_ae"].eval()
+        seqs = [d.sequences[int(i)] for i in idx]
+        Tm = max(s.num_frames for s in seqs)
+        F, K, B = descriptor_size(pose_ae.latent), soft_ae.latent, self.data.num_betas
+        gamma = torch.zeros(len(seqs), Tm, F, device=self.dev)
+        target = torch.zeros(len(seqs), Tm, K, device=self.dev)
+        mask = torch.zeros(len(seqs), Tm, dtype=torch.bool, device=self.dev)
+        betas = torch.zeros(len(seqs), B, device=self.dev)
+        for k, s in enumerate(seqs):
+            p = torch.as_tensor(s.poses, device=self.dev)
+            t = torch.as_tensor(s.trans, device=self.dev)
+            n = s.num_frames
+            gamma[k, :n] = motion_descriptor(pose_ae.encode_pose(p[:, 3:]), p, t, s.fps)
+            target[k, :n] = soft_ae.encode(torch.as_tensor(s.displacements, device=self.dev))
+            mask[k, :n] = True
+            betas[k, :len(s.betas)] = torch.as_tensor(s.betas, device=self.dev)
+        out = (gamma, betas, target, mask)
+        self._seq_cache[key] = out
+        return out
+
+    def prepare_regressor(self) -> None:
+        """Standardise the regressor's inputs with the training sequences (frozen encoders)."""
+        gamma, betas, _, mask = self.sequences(self.train, range(len(self.train.sequences)))
+        self.nets["regressor"].set_standardisation(self.nets["regressor"].inputs(gamma, betas)[mask])
+
+    @torch.no_grad()
+    def val_loss(self, stage: str, config: SoftTissueConfig) -> float | None:
+        if self.test_frames is None:
+            return None
+        self.nets[stage].eval()
+        if stage == "regressor":
+            n = len(_merge(self.test, self.data).sequences)
+            return float(self.loss(stage, list(range(n)), config, test=True)["total"])
+        n = len(self.test_frames[0])
+        total = 0.0
+        for i in range(0, n, 256):
+            idx = torch.arange(i, min(n, i + 256), device=self.dev)
+            total += float(self.loss(stage, idx, config, test=True)["total"]) * len(idx)
+        return total / n
+
+
+def _merge(groups: dict, like: SoftTissueData) -> SoftTissueData:
+    seqs = [s for g in groups.values() for s in g.sequences]
+    return SoftTissueData(seqs, like.body, like.faces, like.template, like.source)
+
+
+def _reopen(prog: dict, config: SoftTissueConfig, folder: Path) -> None:
+    """Resuming with more epochs: the regressor (the last stage) continues; an earlier, finished stage
+    cannot (the later stages were trained on it), so that is refused."""
+    for i, stage in enumerate(STAGES[:prog["stage"]]):
+        done = prog["done"].get(stage, 0)
+        if config.epochs(stage) > done:
+            if i < len(STAGES) - 1:
+                raise InputError(f"{folder} has finished its {stage} stage at {done} epochs and trained the later "
+                                 f"stages on it; pass --restart to train it for {config.epochs(stage)}")
+            prog.update(stage=i, epoch=done, step=0, sums={}, count=0)
+
+
+def _save_state(folder: Path, run: _Run, optimizer, settings: dict, prog: dict) -> None:
+    buf = io.BytesIO()
+    opt = optimizer.state_dict() if isinstance(optimizer, torch.optim.Optimizer) else optimizer
+    torch.save({"models": {k: v.state_dict() for k, v in run.nets.items()}, "optimizer": opt,
+                "settings": json.dumps(settings), "progress": json.dumps(prog)}, buf)
+    atomic_write_bytes(folder / STATE_FILE, buf.getvalue())
+
+
+def train_softtissue(data: SoftTissueData, out: str | Path, *, body, config: SoftTissueConfig | None = None,
+                     device: str = "cpu", time_budget: float | None = None, resume: bool = True, progress=None,
+                     checkpoint_every: float = 120.0) -> SoftTissueResult:
+    """Train the three SoftSMPL stages on ``data`` into OUT/softtissue/ (module docstring).
+
+    body: the :class:`~simgen.body.BodyModel` of the data (its hash must match ``data.body``);
+    config: :class:`SoftTissueConfig`; device: "cpu", "cuda", "cuda:N"; time_budget [s]: stop at the
+    first optimiser step after this long, everything saved; resume: continue from train_state.pt
+    (more epochs continue a run; other settings are refused); False starts over; progress(done,
+    total, info) after every step, done/total in epochs summed over the stages; checkpoint_every [s].
+    """
+    config = config or SoftTissueConfig()
+    config.check()
+    dev = _device(device)
+    run = _Run(data, config, dev, body)
+    folder = Path(out) / SOFTTISSUE_DIR
+    folder.mkdir(parents=True, exist_ok=True)
+    fixed = {k: v for k, v in asdict(config).items() if k not in ("pose_epochs", "ae_epochs", "reg_epochs")}
+    settings = {"config": fixed, "identity": run.identity, "source": data.source,
+                "sequences": [s.name for s in data.sequences]}
+    state = _load_state(folder, settings, resume, dev)
+    prog = {"stage": 0, "epoch": 0, "step": 0, "sums": {}, "count": 0, "losses": {}, "done": {}}
+    opt_state = None
+    if state is not None:
+        for k, net in run.nets.items():
+            net.load_state_dict(state["models"][k])
+        prog, opt_state = json.loads(state["progress"]), state["optimizer"]
+        _reopen(prog, config, folder)
+    split = {"test_motions": config.held_out()[0], "test_subjects": config.held_out()[1],
+             "train": [s.name for s in run.train.sequences],
+             "test": {k: [s.name for s in g.sequences] for k, g in run.test.items()}}
+    atomic_write_bytes(folder / "split.json", (json.dumps(split, indent=2) + "\n").encode())
+    log = _Logger(folder, _LOG_FIELDS, False)
+    total_epochs = sum(config.epochs(s) for s in STAGES)
+    t0 = last_save = time.monotonic()
+    steps, stopped = 0, "epochs"
+    optimizer = opt_state  # a state dict until a stage runs (a resumed, finished run saves it back)
+
+    def save(final_stage: int) -> None:
+        _save_state(folder, run, optimizer, settings, prog)
+        for k in STAGES[:final_stage]:
+            save_model(run.nets[k], folder / k, identity=run.identity, training={
+                "method": "SoftSMPL", "stage": k, "source": data.source, "split": split, "config": asdict(config),
+                "fps": run.train.sequences[0].fps, "loss": prog["losses"].get(k)})
+
+    try:
+        while prog["stage"] < len(STAGES):
+            stage = STAGES[prog["stage"]]
+            net = run.nets[stage]
+            lr = {"pose_ae": config.pose_lr, "soft_ae": config.ae_lr, "regressor": config.reg_lr}[stage]
+            optimizer = torch.optim.Adam(net.parameters(), lr=lr)
+            if opt_state is not None:
+                optimizer.load_state_dict(opt_state)
+                opt_state = None
+            if stage == "regressor":
+                run.prepare_regressor()
+            batch = {"pose_ae": config.pose_batch, "soft_ae": config.ae_batch, "regressor": config.reg_batch}[stage]
+            n = run.n_items(stage)
+            batches = (n + batch - 1) // batch
+            done_before = sum(config.epochs(s) for s in STAGES[:prog["stage"]])
+            while prog["epoch"] < config.epochs(stage):
+                gen = torch.Generator().manual_seed(config.seed * 1_000_003 + prog["stage"] * 10_007 + prog["epoch"])
+                perm = torch.randperm(n, generator=gen)
+                while prog["step"] < batches:
+                    net.train()
+                    if stage == "regressor":
+                        run.nets["pose_ae"].eval()
+                        run.nets["soft_ae"].eval()
+                    idx = perm[prog["step"] * batch:(prog["step"] + 1) * batch]
+                    if stage != "regressor":
+                        idx = idx.to(run.dev)
+                    else:
+                        idx = sorted(int(i) for i in idx)
+                    terms = run.loss(stage, idx, config)
+                    optimizer.zero_grad(set_to_none=True)
+                    terms["total"].backward()
+                    optimizer.step()
+                    for k, v in terms.items():
+                        prog["sums"][k] = prog["sums"].get(k, 0.0) + float(v.detach()) * len(idx)
+                    prog["count"] += len(idx)
+                    prog["step"] += 1
+                    steps += 1
+                    if progress is not None:
+                        progress(done_before + prog["epoch"] + prog["step"] / batches, total_epochs,
+                                 {"stage": stage, "loss": float(terms["total"].detach())})
+                    if time_budget is not None and time.monotonic() - t0 >= time_budget:
+                        stopped = "time budget"
+                        break
+                    if time.monotonic() - last_save >= checkpoint_every:
+                        save(prog["stage"])
+                        last_save = time.monotonic()
+                if prog["step"] >= batches:
+                    means = {k: v / max(prog["count"], 1) for k, v in prog["sums"].items()}
+                    val = run.val_loss(stage, config)
+                    prog["epoch"] += 1
+                    prog["losses"][stage] = means.get("total")
+                    log.row({"stage": stage, "epoch": prog["epoch"], "lr": lr, "loss": means.get("total"),
+                             **{k: v for k, v in means.items() if k != "total"},
+                             "val_loss": "" if val is None else val, "seconds": round(time.monotonic() - t0, 3)})
+                    prog.update(step=0, sums={}, count=0)
+                if stopped == "time budget":
+                    break
+            if stopped == "time budget":
+                break
+            prog["done"][stage] = prog["epoch"]
+            prog.update(stage=prog["stage"] + 1, epoch=0, step=0, sums={}, count=0)
+            net.eval()
+        save(prog["stage"])
+    finally:
+        log.close()
+    stage = STAGES[min(prog["stage"], len(STAGES) - 1)]
+    return SoftTissueResult(folder, stage if prog["stage"] < len(STAGES) else "done", prog["epoch"], steps,
+                            time.monotonic() - t0, stopped, dict(prog["losses"]))
+
+
+def check_model_identity(folder: str | Path, identity: dict) -> None:
+    """Refuse a SoftSMPL folder trained for another body (one sentence naming both)."""
+    check_identity(read_config(Path(folder) / "regressor"), identity, folder)

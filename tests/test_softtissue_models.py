@@ -1,0 +1,262 @@
+"""SoftSMPL (thesis ch. 3): the Dyna reader, the three networks, training, saving and the CLI.
+
+Everything runs on the CPU on a tiny body: a few hundred vertices of the bundled open body (whole
+triangles of it, with the joint regressor renormalised), so the whole file takes seconds.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from simgen.body import BodyModel, TorchBody, load
+from simgen.errors import InputError
+from simgen.learn.skinning import lbs_torch
+from simgen.learn.softtissue.data import SoftTissueData, synthetic_softtissue_data
+from simgen.learn.softtissue.models import (PoseAE, SoftTissueAE, SoftTissueRegressor, normal_loss, pca_basis,
+                                            pose_ae_loss, reconstruction_loss, regression_loss)
+
+
+def _tiny_body(stride: int = 60) -> BodyModel:
+    """Every ``stride``-th triangle of the open body, as a body of its own (joints regressed from the
+    vertices nearest the full body's joints)."""
+    full = load("open")
+    faces = np.asarray(full.faces)[::stride]
+    keep = np.unique(faces)
+    remap = np.full(full.num_vertices, -1)
+    remap[keep] = np.arange(len(keep))
+    # joints: inverse-distance weights of the 8 kept vertices nearest each of the full body's joints
+    joints = np.asarray(full.J_regressor) @ np.asarray(full.v_template)
+    dist = np.linalg.norm(full.v_template[keep][None] - joints[:, None], axis=-1)
+    near = np.argsort(dist, axis=1)[:, :8]
+    J = np.zeros((24, len(keep)))
+    for j in range(24):
+        w = 1.0 / (dist[j, near[j]] + 1e-3)
+        J[j, near[j]] = w / w.sum()
+    return BodyModel(np.array(full.v_template[keep]), np.array(full.shapedirs[keep]), np.zeros((len(keep), 3, 0)),
+                     J, np.array(full.weights[keep]), np.array(full.parents), remap[faces], name="tiny")
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _one_thread():
+    """One torch thread: on a shared machine, torch's default threads slow these tiny ops by 10-40x."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+@pytest.fixture(scope="module")
+def body():
+    return _tiny_body()
+
+
+@pytest.fixture(scope="module")
+def data(body):
+    return synthetic_softtissue_data(body, motions=("jump", "walk"), subjects=2, frames=20)
+
+
+# ------------------------------------------------------------------------------------ Dyna reader
+def test_dyna_reader_round_trip(body, tmp_path):
+    h5py = pytest.importorskip("h5py")
+    from simgen.learn.softtissue.dyna import list_dyna_sequences, read_dyna
+
+    src = synthetic_softtissue_data(body, motions=("jump",), subjects=2, frames=40, seed=1)
+    tb = TorchBody(body, dtype=torch.float64)
+    path = tmp_path / "dyna_fake.h5"
+    truth = {}
+    with h5py.File(path, "w") as f:
+        f["faces"] = body.faces
+        for k, s in enumerate(src.sequences):
+            b = torch.tensor(s.betas, dtype=torch.float64)[None]
+            p, t = torch.tensor(s.poses[-4:], dtype=torch.float64), torch.tensor(s.trans[-4:], dtype=torch.float64)
+            # the synthetic field with a sign alternating from vertex to vertex: a known Delta (up to ~1 cm) that
+            # no pose or shape can express, so the fit must leave all of it to Delta (a smooth, coherent Delta
+            # is partly absorbed by the least-squares pose: that split is eq. 3.4's, not the reader's)
+            sign = torch.tensor((-1.0) ** np.arange(body.num_vertices), dtype=torch.float64)[None, :, None]
+            delta = torch.tensor(s.displacements[-4:], dtype=torch.float64) * sign
+            assert delta.norm(dim=-1).max() > 1e-3
+            delta[0] = 0.0  # the first frame (the shape's fit) at rest, like a capture that starts still
+            _, _, A = tb(b, p, t)
+            v = lbs_torch(tb.shaped_vertices(b) + delta, tb.weights, A)
+            name = f"5000{k}_jiggle"
+            f[name] = v.permute(1, 2, 0).numpy()  # (V, 3, T), Dyna's layout
+            truth[name] = (tb(b, p, t)[0], delta)
+    assert list_dyna_sequences(path) == sorted(truth)
+    with pytest.raises(InputError, match="dyna_fake.h5.*6890"):
+        read_dyna(path, body)  # the real files need SMPL's topology
+    got = read_dyna(path, body, require_smpl=False, steps=60, lm_steps=10)
+    for s in got.sequences:
+        fitted = tb(torch.tensor(s.betas, dtype=torch.float64)[None], torch.tensor(s.poses, dtype=torch.float64),
+                    torch.tensor(s.trans, dtype=torch.float64))[0]
+        body_err = (fitted - truth[s.name][0]).norm(dim=-1).max().item()
+        delta_err = np.linalg.norm(s.displacements - truth[s.name][1].numpy(), axis=-1).max()
+        assert body_err < 1e-3 and delta_err < 1e-3, (s.name, body_err, delta_err)
+
+
+# ------------------------------------------------------------------------------------ autoencoder
+def test_autoencoder_is_pca_at_init_and_learns(body, data):
+    D = np.concatenate([s.displacements for s in data.sequences])[::4]  # 20 frames
+    full = SoftTissueAE(body.num_vertices, latent=len(D), hidden=16, blocks=2, dropout=0.0).double()
+    full.init_pca(D)
+    x = torch.tensor(D, dtype=torch.float64)
+    assert torch.allclose(full(x), x, atol=1e-9)  # full rank: the data itself
+    k = 4
+    ae = SoftTissueAE(body.num_vertices, latent=k, hidden=16, blocks=1, dropout=0.0).double()
+    ae.init_pca(D)
+    mean, comps, _ = pca_basis(D, k)
+    Xc = D.reshape(len(D), -1) - mean
+    pca = (Xc @ comps.T @ comps + mean).reshape(D.shape)
+    assert np.allclose(ae(x).detach().numpy(), pca, atol=1e-9)
+    # training: data of a higher rank than the code (the synthetic field has rank 3), PCA-initialised
+    noisy = x + 1e-3 * torch.randn(x.shape, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    ae = SoftTissueAE(body.num_vertices, latent=2, hidden=16, blocks=1, dropout=0.0).double()
+    ae.init_pca(noisy.numpy())
+    template, faces = torch.tensor(body.v_template), torch.tensor(np.asarray(body.faces))
+    opt = torch.optim.Adam(ae.parameters(), lr=1e-4)
+    with torch.no_grad():
+        first = float(reconstruction_loss(noisy, ae(noisy), template, faces)["total"])
+    for _ in range(30):
+        loss = reconstruction_loss(noisy, ae(noisy), template, faces)["total"]
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    assert float(reconstruction_loss(noisy, ae(noisy), template, faces)["total"]) < 0.99 * first
+
+
+def test_face_normal_term():
+    template = torch.tensor([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]], dtype=torch.float64)
+    faces = torch.tensor([[0, 1, 2]])
+    zero = torch.zeros(1, 3, 3, dtype=torch.float64)
+    assert float(normal_loss(zero, zero, template, faces)) == 0.0
+    # rotate the triangle by 30 degrees about x: its normal turns by 30 degrees
+    a = math.radians(30)
+    R = torch.tensor([[1, 0, 0], [0, math.cos(a), -math.sin(a)], [0, math.sin(a), math.cos(a)]], dtype=torch.float64)
+    rotated = (template @ R.T - template)[None]
+    assert float(normal_loss(zero, rotated, template, faces)) == pytest.approx(1 - math.cos(a), abs=1e-12)
+    terms = reconstruction_loss(zero, rotated, template, faces)
+    assert float(terms["total"]) == pytest.approx(float(rotated.flatten().norm()) + 1000 * (1 - math.cos(a)))
+
+
+# ------------------------------------------------------------------------------------ pose autoencoder
+def test_pose_autoencoder_paths_agree(body, data):
+    torch.manual_seed(0)
+    tb = TorchBody(body)
+    poses = torch.tensor(np.concatenate([s.poses for s in data.sequences[:2]]))[::2]
+    meshes = PoseAE.mesh_input(tb, poses)
+    model = PoseAE(body.num_vertices, latent=10, hidden=64)
+    opt = torch.optim.Adam(model.parameters(), lr=2e-3)
+    first = float(pose_ae_loss(model, meshes, poses[:, 3:])["total"])
+    for _ in range(300):
+        terms = pose_ae_loss(model, meshes, poses[:, 3:])
+        opt.zero_grad()
+        terms["total"].backward()
+        opt.step()
+    with torch.no_grad():
+        a = model.decode(model.encode_mesh(meshes))
+        b = model.decode(model.encode_pose(poses[:, 3:]))
+    scale = meshes.flatten(1).norm(dim=1).mean()
+    assert float(terms["total"]) < 0.2 * first
+    assert float((a - b).flatten(1).norm(dim=1).mean()) < 0.1 * scale
+
+
+# ------------------------------------------------------------------------------------ regressor
+def test_regressor_learns_and_resets_per_sequence():
+    torch.manual_seed(0)
+    F, B, K, T = 6, 2, 3, 12
+    gamma = torch.randn(3, T, F)
+    betas = torch.randn(3, B)
+    target = torch.cumsum(gamma[..., :K], dim=1) * 0.1  # history-dependent
+    model = SoftTissueRegressor(F, B, K, hidden=16)
+    model.set_standardisation(model.inputs(gamma, betas).flatten(0, 1))
+    opt = torch.optim.Adam(model.parameters(), lr=1e-2)
+    first = float(regression_loss(model(gamma, betas), target)["total"])
+    for _ in range(60):
+        loss = regression_loss(model(gamma, betas), target)["total"]
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    assert float(loss) < 0.5 * first
+    with torch.no_grad():
+        alone = model(gamma[1:2], betas[1:2])
+        batched = model(gamma, betas)[1:2]
+        after = model(gamma[0:1], betas[0:1]) is not None and model(gamma[1:2], betas[1:2])
+        # a shorter sequence padded with zeros: its own frames are unaffected by the padding
+        padded = torch.cat([gamma[1:2, :8], torch.zeros(1, 4, F)], dim=1)
+        short = model(padded, betas[1:2])[:, :8]
+    assert torch.allclose(alone, batched, atol=1e-6) and torch.allclose(alone, after)
+    assert torch.allclose(short, model(gamma[1:2, :8], betas[1:2]), atol=1e-6)
+    mask = torch.ones(1, T, dtype=torch.bool)
+    mask[:, 8:] = False
+    masked = regression_loss(model(gamma[1:2], betas[1:2])[:, :T], target[1:2], mask)
+    plain = regression_loss(model(gamma[1:2, :8], betas[1:2]), target[1:2, :8])
+    for k in ("pos", "vel", "acc"):
+        assert float(masked[k]) == pytest.approx(float(plain[k]), rel=1e-5)
+
+
+# ------------------------------------------------------------------------------------ training, saving, CLI
+def _tiny_config(**kw):
+    from simgen.learn.softtissue.train import SoftTissueConfig
+
+    base = dict(pose_hidden=32, pose_epochs=2, pose_batch=32, ae_latent=8, ae_hidden=16, ae_epochs=2, ae_batch=32,
+                reg_hidden=16, reg_epochs=3, reg_batch=2, test_motions="walk")
+    base.update(kw)
+    return SoftTissueConfig(**base)
+
+
+def test_train_save_load_predict(body, data, tmp_path):
+    from simgen.learn.softtissue.train import load_softtissue_model, train_softtissue
+
+    result = train_softtissue(data, tmp_path, body=body, config=_tiny_config())
+    assert result.stopped == "epochs" and result.stage == "done"
+    rows = list(csv.DictReader(open(tmp_path / "softtissue" / "log.csv")))
+    assert [r["stage"] for r in rows] == ["pose_ae"] * 2 + ["soft_ae"] * 2 + ["regressor"] * 3
+    model = load_softtissue_model(tmp_path)
+    s = data.sequences[1]
+    a = model.predict(s.betas, s.poses, s.trans, s.fps)
+    b = load_softtissue_model(tmp_path / "softtissue").predict(s.betas, s.poses, s.trans, s.fps)
+    assert a.shape == (s.num_frames, body.num_vertices, 3) and torch.equal(a, b)
+    posed = model.posed(body, s.betas, s.poses, s.trans, s.fps)
+    assert posed.shape == a.shape and torch.isfinite(posed).all()
+    other = {"body": {"id": "smpl_female", "hash": "0" * 64}}
+    with pytest.raises(InputError, match="was trained for body"):
+        load_softtissue_model(tmp_path, identity=other)
+    with pytest.raises(InputError, match="other settings"):
+        train_softtissue(data, tmp_path, body=body, config=_tiny_config(ae_latent=4))
+
+
+def test_cli_trains_and_resumes(body, tmp_path):
+    from typer.testing import CliRunner
+
+    from simgen.cli import app
+
+    body_file = body.save(tmp_path / "tiny_body.npz")
+    out = tmp_path / "run"
+    args = ["train", "softtissue", "--data", "synthetic", "--body", str(body_file), "--out", str(out),
+            "--max-frames", "8", "--pose-epochs", "1", "--ae-epochs", "1", "--ae-latent", "4", "--test-motions", "walk"]
+    runner = CliRunner()
+    first = runner.invoke(app, args + ["--reg-epochs", "1"])
+    assert first.exit_code == 0, first.output
+    log = out / "softtissue" / "log.csv"
+    assert len(list(csv.DictReader(open(log)))) == 3
+    second = runner.invoke(app, args + ["--reg-epochs", "3"])  # more epochs continue the run
+    assert second.exit_code == 0, second.output
+    rows = list(csv.DictReader(open(log)))
+    assert [(r["stage"], r["epoch"]) for r in rows][-3:] == [("regressor", "1"), ("regressor", "2"),
+                                                             ("regressor", "3")]
+    assert (out / "softtissue" / "regressor" / "model.pt").is_file()
+
+
+def test_split_and_data_checks(data):
+    train, test = data.split(test_motions=["walk"], test_subjects=["s1"])
+    assert {s.name for s in train.sequences} == {"s0_jump"}
+    assert {k: [s.name for s in g.sequences] for k, g in test.items()} == {
+        "held_out_motion": ["s0_walk"], "held_out_shape": ["s1_jump"], "held_out_both": ["s1_walk"]}
+    with pytest.raises(InputError, match="held-out motion 'swim'"):
+        data.split(test_motions=["swim"])
+    with pytest.raises(InputError, match="vertices"):
+        SoftTissueData([data.sequences[0]], data.body, data.faces, data.template[:10])
