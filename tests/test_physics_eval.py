@@ -153,6 +153,14 @@ def test_sim_library_npz_and_bad_sources(tmp_path, simulated, body):
         load_simulation(bad, body=body)
     with pytest.raises(InputError, match="no such file"):
         load_simulation(tmp_path / "missing.npz", body=body)
+    # A truncated download (a zip cut in half) and a zip whose member is corrupt: one sentence each.
+    whole = simulated.read_bytes()
+    for name, content in (("cut.npz", whole[: len(whole) // 2]),
+                          ("garbled.npz", whole[:200] + bytes(b ^ 0x5A for b in whole[200:400]) + whole[400:])):
+        broken = tmp_path / name
+        broken.write_bytes(content)
+        with pytest.raises(InputError, match="is not a readable .npz file"):
+            load_simulation(broken, body=body)
 
 
 def test_cli_eval_physics(tmp_path, simulated, capsys):

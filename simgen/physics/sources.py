@@ -99,6 +99,38 @@ def _resolve_body(body):
     return body_pkg.load("open") if body is None else (body_pkg.load(body) if isinstance(body, str) else body)
 
 
+def _read_simulation_npz(path: Path):
+    """positions (T, V, 3) float32 [m], faces (F, 3), fps, body_vertices (T, Vb, 3) or None, and the
+    metadata dict of a simulation .npz; InputError naming the file when it is missing, not a
+    readable .npz (a truncated or corrupt archive included) or not a simulation output."""
+    import zipfile
+    import zlib
+
+    if not path.is_file():
+        raise InputError(f"{path}: no such file")
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            keys = set(data.files)
+            if "positions" not in keys or "faces" not in keys or "fps" not in keys:
+                raise InputError(f"{path} is not a simulation output (needs arrays positions, faces and fps)")
+            positions = data["positions"].astype(np.float32)
+            faces = data["faces"]
+            fps = float(data["fps"])
+            stored_body = data["body_vertices"].astype(np.float32) if "body_vertices" in keys else None
+            if "metadata" in keys:
+                meta = json.loads(str(data["metadata"]))
+            elif "summary" in keys and "motion" in keys:      # scripts/sim_library.py
+                meta = json.loads(str(data["summary"]))
+                meta["motion"] = str(data["motion"])
+            else:
+                raise InputError(f"{path} has no metadata (garment, motion): write it with SimulationResult.save_npz")
+    except InputError:
+        raise
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
+        raise InputError(f"{path} is not a readable .npz file ({exc})") from None
+    return positions, faces, fps, stored_body, meta
+
+
 def load_simulation(path, *, body=None, material=None) -> GarmentSequence:
     """A simulated sequence from an .npz (module doc).
 
@@ -111,27 +143,7 @@ def load_simulation(path, *, body=None, material=None) -> GarmentSequence:
     from simgen.materials import Material, get_material
 
     path = Path(path)
-    if not path.is_file():
-        raise InputError(f"{path}: no such file")
-    try:
-        data = np.load(path, allow_pickle=False)
-    except (OSError, ValueError) as exc:
-        raise InputError(f"{path} is not a readable .npz file ({exc})") from None
-    with data:
-        keys = set(data.files)
-        if "positions" not in keys or "faces" not in keys or "fps" not in keys:
-            raise InputError(f"{path} is not a simulation output (needs arrays positions, faces and fps)")
-        positions = data["positions"].astype(np.float32)
-        faces = data["faces"]
-        fps = float(data["fps"])
-        stored_body = data["body_vertices"].astype(np.float32) if "body_vertices" in keys else None
-        if "metadata" in keys:
-            meta = json.loads(str(data["metadata"]))
-        elif "summary" in keys and "motion" in keys:      # scripts/sim_library.py
-            meta = json.loads(str(data["summary"]))
-            meta["motion"] = str(data["motion"])
-        else:
-            raise InputError(f"{path} has no metadata (garment, motion): write it with SimulationResult.save_npz")
+    positions, faces, fps, stored_body, meta = _read_simulation_npz(path)
     for key in ("garment", "motion"):
         if not isinstance(meta.get(key), str):
             raise InputError(f"{path}: metadata lacks the {key} name")
