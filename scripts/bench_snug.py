@@ -6,7 +6,7 @@ a held-out clip, ``--repeats`` times after a warm-up, with and without the colli
 Prints one JSON object: device, commit, seconds per epoch and the per-epoch losses from log.csv,
 why training stopped, ms per frame of the rollouts, parameters and their float32 megabytes.
 
-    python scripts/bench_snug.py --device cuda --garment tshirt --time-budget 240 --out /tmp/snug
+    python scripts/bench_snug.py --device cuda --garment tshirt --time-budget 240 --out runs/snug-bench
 """
 
 from __future__ import annotations

@@ -968,6 +968,13 @@ _T_RESTART = typer.Option(False, "--restart", help="Discard a saved run in the f
 _T_TB = typer.Option(False, "--tensorboard", help="Also write TensorBoard events (needs tensorboard).")
 _T_BODY = typer.Option(None, "--body", help="Body model file if the dataset was not made with the bundled body.")
 _T_MAXF = typer.Option(None, "--max-frames", help="Use only the first N frames of every sequence.")
+# The GRU of `train snug` and `train gru-l2` (SnugConfig's fields).
+_G_EPOCHS = typer.Option(None, "--epochs", help="Most epochs (200; it stops at convergence).")
+_G_BATCH = typer.Option(None, "--batch-size", help="Windows per step (16).", rich_help_panel=EXPERT)
+_G_LR = typer.Option(None, "--lr", help="Adam learning rate of the first epochs (1e-3).", rich_help_panel=EXPERT)
+_G_HIDDEN = typer.Option(None, "--hidden", help="Units per GRU layer (256).", rich_help_panel=EXPERT)
+_G_FEATURES = typer.Option(None, "--features", help="Motion descriptor: pose_velocity (default) or pose.",
+                           rich_help_panel=EXPERT)
 
 
 @train_app.command("fit")
@@ -1038,14 +1045,8 @@ def train_snug_cmd(
     no_gravity: bool = typer.Option(False, "--no-gravity", help="Ablation: drop the gravity term."),
     no_inertia: bool = typer.Option(False, "--no-inertia", help="Ablation: drop the inertia term."),
     no_collision: bool = typer.Option(False, "--no-collision", help="Ablation: drop the collision term."),
-    epochs: Optional[int] = typer.Option(None, "--epochs", help="Most epochs (200; it stops at convergence)."),
-    batch_size: Optional[int] = typer.Option(None, "--batch-size", help="Windows per step (16).",
-                                             rich_help_panel=EXPERT),
-    lr: Optional[float] = typer.Option(None, "--lr", help="Adam learning rate of the first epochs (1e-3).",
-                                       rich_help_panel=EXPERT),
-    hidden: Optional[int] = typer.Option(None, "--hidden", help="Units per GRU layer (256).", rich_help_panel=EXPERT),
-    features: Optional[str] = typer.Option(None, "--features", help="Motion descriptor: pose_velocity (default) or "
-                                           "pose.", rich_help_panel=EXPERT),
+    epochs: Optional[int] = _G_EPOCHS, batch_size: Optional[int] = _G_BATCH, lr: Optional[float] = _G_LR,
+    hidden: Optional[int] = _G_HIDDEN, features: Optional[str] = _G_FEATURES,
     seed: Optional[int] = typer.Option(None, "--seed", help="Random seed (0)."),
 ) -> None:
     """Train SNUG (thesis ch. 5): a GRU garment model trained with the physics terms alone, no simulated data.
@@ -1078,14 +1079,8 @@ def train_gru_l2_cmd(
     dataset: str = _T_DATASET, out: Path = typer.Option(..., "--out", help="Model folder (the model goes to "
                                                         "OUT/snug/, the split to OUT/split.json)."),
     device: str = _T_DEVICE, split: Optional[str] = _T_SPLIT, test_shapes: Optional[str] = _T_TEST_SHAPES,
-    epochs: Optional[int] = typer.Option(None, "--epochs", help="Most epochs (200; it stops at convergence)."),
-    batch_size: Optional[int] = typer.Option(None, "--batch-size", help="Windows per step (16).",
-                                             rich_help_panel=EXPERT),
-    lr: Optional[float] = typer.Option(None, "--lr", help="Adam learning rate of the first epochs (1e-3).",
-                                       rich_help_panel=EXPERT),
-    hidden: Optional[int] = typer.Option(None, "--hidden", help="Units per GRU layer (256).", rich_help_panel=EXPERT),
-    features: Optional[str] = typer.Option(None, "--features", help="Motion descriptor: pose_velocity (default) or "
-                                           "pose.", rich_help_panel=EXPERT),
+    epochs: Optional[int] = _G_EPOCHS, batch_size: Optional[int] = _G_BATCH, lr: Optional[float] = _G_LR,
+    hidden: Optional[int] = _G_HIDDEN, features: Optional[str] = _G_FEATURES,
     time_budget: Optional[float] = _T_BUDGET, restart: bool = _T_RESTART,
     seed: Optional[int] = typer.Option(None, "--seed", help="Random seed (0)."), max_frames: Optional[int] = _T_MAXF,
     body: Optional[str] = _T_BODY,

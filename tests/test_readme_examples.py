@@ -257,8 +257,8 @@ def readme_examples(world: World | None = None) -> list[Example]:
     """Every README command line, concrete (placeholders filled from ``world``; without a world,
     stand-in paths, which is enough for the test ids)."""
     text = README.read_text()
-    world = world or World(Path("/tmp/readme"), Path("/tmp/readme/home"), Path("/tmp/readme/clip.npz"),
-                           Path("/tmp/readme/shirt.obj"), store=Path(STAND_IN_STORE), sequence="SEQ")
+    world = world or World(Path("readme"), Path("readme/home"), Path("readme/clip.npz"),
+                           Path("readme/shirt.obj"), store=Path(STAND_IN_STORE), sequence="SEQ")
     found: list[tuple[str, str]] = [("bash block", c) for c in bash_commands(text)]
     examples = []
     for synopsis, problem in table_synopses(text):
@@ -358,7 +358,7 @@ def store(world):
     return path, open_dataset(path).sequence_ids()[0]
 
 
-STAND_IN_STORE = "/tmp/readme/store"
+STAND_IN_STORE = "readme/store"
 EXAMPLES = readme_examples()
 
 
