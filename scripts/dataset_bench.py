@@ -108,16 +108,17 @@ def main(argv=None) -> int:
                       "triangles": ds.attrs["garment"]["triangles"], "shapes": len(spec.shapes()),
                       "motions": len(spec.motions()), "planned_sequences": r.planned_sequences,
                       "sequences_done": len(ds.sequence_ids()), "sequences_written_now": r.written,
-                      "substeps": spec.substeps, "batch_size": spec.batch_size, "overlap_writes": spec.overlap_writes,
+                      "substeps": spec.substeps, "batch_size": spec.batch_size, "pool_slots": r.slots,
+                      "overlap_writes": spec.overlap_writes,
                       "protocol_frames": spec.protocol_frames()},
             "cloth_frames": r.cloth_frames,
             "wall_s": r.wall,
             "run_wall_s": wall,
             "cloth_frames_per_s": rate,
-            # Where the wall time went (summed over batches): the solver's stepping, the rest of the
-            # simulate_batch calls (posing, per-frame statistics, host copies), writing the nodes, the
-            # part of the writes done in the background while the next batch simulated (overlap_writes;
-            # 0 without), and what is left (planning, fits' bookkeeping, waiting):
+            # Where the wall time went (summed over pools): the solver's stepping, the rest of the
+            # pools' frames (posing, per-frame statistics, host copies), writing the nodes, the part
+            # of the writes done in the background while the pool stepped (overlap_writes; 0
+            # without), and what is left (planning, loading, waiting):
             # wall = solver_steps + simulate_other + write - write_hidden + other.
             "time_split_s": {"solver_steps": r.step_wall, "simulate_other": r.simulate_wall - r.step_wall,
                              "write": r.write_wall, "write_hidden": r.write_wall - r.write_wait,
@@ -135,6 +136,11 @@ def main(argv=None) -> int:
             "projected_thesis_tshirt_s": thesis_plan["cloth_frames"] / rate if rate else None,
             "thesis_arcsim_s": THESIS_ARCSIM_HOURS * 3600,
         }
+        if device.startswith("cuda"):
+            import warp as wp
+
+            # Warp's memory pool at its fullest over the run [bytes] (the pool's slots and the rest).
+            result["gpu_memory_high_bytes"] = int(wp.get_mempool_used_mem_high(device))
     finally:
         if tmp is not None:
             shutil.rmtree(tmp, ignore_errors=True)

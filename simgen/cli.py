@@ -840,9 +840,10 @@ def dataset_generate(
     spec: str = typer.Argument(..., help="A TOML spec file or a bundled preset (list them: "
                                          "`simgen dataset presets`)."),
     out: Optional[str] = typer.Option(None, "--out", help="Store folder or fsspec URL (default: the spec's)."),
-    ray: Optional[str] = typer.Option(None, "--ray", help="Run batches as Ray tasks: 'local' or a cluster address."),
+    ray: Optional[str] = typer.Option(None, "--ray", help="Run one pool per Ray GPU worker: 'local' or a cluster address."),
     device: Optional[str] = typer.Option(None, "--device", help="Warp device: auto, cpu, cuda or cuda:N."),
-    batch_size: Optional[int] = typer.Option(None, "--batch-size", help="Sequences per batched solver call.",
+    batch_size: Optional[int] = typer.Option(None, "--batch-size", help="Slots of the simulation pool (jobs "
+                                             "simulated at once); 0: from the GPU's free memory.",
                                              rich_help_panel=EXPERT),
     substeps: Optional[int] = typer.Option(None, "--substeps", help="Solver steps per frame.", rich_help_panel=EXPERT),
     max_frames: Optional[int] = typer.Option(None, "--max-frames", help="Frames kept per clip (0: all)."),

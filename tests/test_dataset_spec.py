@@ -179,7 +179,7 @@ def test_cli_bad_input_is_one_sentence_exit_2(tmp_path, capsys):
     for argv, needle in (
         (["dataset", "generate", "thesis-shirt", "--out", str(tmp_path / "a")], "unknown dataset preset"),
         (["dataset", "generate", "tiny", "--out", str(tmp_path / "b"), "--motions", "moonwalk"], "'moonwalk'"),
-        (["dataset", "generate", "tiny", "--out", str(tmp_path / "c"), "--batch-size", "0"], "batch_size"),
+        (["dataset", "generate", "tiny", "--out", str(tmp_path / "c"), "--batch-size", "-1"], "batch_size"),
         (["dataset", "info", str(tmp_path / "none")], "not a dataset store"),
         (["dataset", "export", str(tmp_path / "none.npz"), "x"], "does not exist"),
     ):

@@ -378,23 +378,41 @@ def test_write_failure_is_one_error_and_resumable(tmp_path, monkeypatch, capsys)
     assert check_dataset(out).passed
 
 
+def _patch_pools(monkeypatch, change) -> list:
+    """Pass every job's result through change(job, result) as its pool hands it over; returns the
+    pools run, as [pool, job ids, substeps] in order (:func:`_runs`)."""
+    from simgen.sim.pool import SimulationPool
+
+    pools: list = []
+    submit, step = SimulationPool.submit, SimulationPool.step
+
+    def submitted(self, job, tag=None):
+        if not pools or pools[-1][0] is not self:
+            pools.append((self, [], self.config.substeps))
+        pools[-1][1].append(tag.id)
+        return submit(self, job, tag)
+
+    monkeypatch.setattr(SimulationPool, "submit", submitted)
+    monkeypatch.setattr(SimulationPool, "step", lambda self: [(job, change(job, res)) for job, res in step(self)])
+    return pools
+
+
+def _runs(pools) -> list:
+    return [(ids, substeps) for _, ids, substeps in pools]
+
+
 @pytest.mark.parametrize("retry", [True, False])
 def test_strain_outlier_is_retried_with_smaller_steps(tmp_path, monkeypatch, retry):
     """A sequence whose first attempt has a frame with a triangle past the check's strain limit (one
     vertex thrown 20 cm here) is simulated again with the substep halved, and the store passes the
     check; with execution.retry_strain_outliers off it is written as it is and the check fails."""
-    import simgen.dataset.execute as ex
 
-    original = ex.simulate_jobs
+    def spiky(job, r):
+        if job.id == "walk_fast__b1p2" and job.attempt == 1:
+            r.positions[-1, 0] += np.array([0.2, 0.0, 0.0], dtype=r.positions.dtype)
+        return r
 
-    def spiky(garment, body, jobs, config, progress=None):
-        res = original(garment, body, jobs, config, progress=progress)
-        for j, r in zip(jobs, res):
-            if j.id == "walk_fast__b1p2" and j.attempt == 1:
-                r.positions[-1, 0] += np.array([0.2, 0.0, 0.0], dtype=r.positions.dtype)
-        return res
-
-    monkeypatch.setattr(ex, "simulate_jobs", spiky)
+    _patch_pools(monkeypatch, spiky)
     spec = micro(retry_strain_outliers=retry)
     out = tmp_path / "s"
     (rep,) = generate_dataset(spec, out=str(out))
@@ -415,24 +433,16 @@ def test_strain_outlier_is_retried_with_smaller_steps(tmp_path, monkeypatch, ret
 
 
 def test_diverged_job_is_retried_with_smaller_steps(tmp_path, monkeypatch):
-    """simulate_batch's contract: a failing instance is a failure in its slot; the driver re-runs it in
-    a later batch with the substep halved while the others are kept."""
-    import simgen.dataset.execute as ex
-
-    original = ex.simulate_jobs
-    calls = []
-
-    def flaky(garment, body, jobs, config, progress=None):
-        res = original(garment, body, jobs, config, progress=progress)
-        calls.append(([j.id for j in jobs], config.substeps))
-        return [_injected(j) if j.id == "walk_fast__b1p2" and j.attempt == 1 else r
-                for j, r in zip(jobs, res)]
-
-    monkeypatch.setattr(ex, "simulate_jobs", flaky)
+    """A failing instance is a failure of its job alone; the driver re-runs it in a later pool with
+    the substep halved while the others are kept."""
+    calls = _patch_pools(monkeypatch, lambda j, r: _injected(j) if j.id == "walk_fast__b1p2" and j.attempt == 1
+                         else r)
     spec = micro()
     (rep,) = generate_dataset(spec, out=str(tmp_path / "s"))
     assert rep.pending == 0 and not rep.failed and rep.written == 2
-    assert calls[-1] == (["walk_fast__b1p2"], 2 * spec.substeps)
+    # One pool for every first attempt (template, fits, sequences longest first), then the retry.
+    assert _runs(calls) == [(["template", "zero", "b1p2", "walk_fast__zero", "walk_fast__b1p2"], spec.substeps),
+                            (["walk_fast__b1p2"], 2 * spec.substeps)]
     assert rep.retried == 1 and rep.retry_cloth_frames > 0
     ds = open_dataset(tmp_path / "s")
     a = ds.sequence("walk_fast__b1p2")["attrs"]["stats"]
@@ -440,33 +450,20 @@ def test_diverged_job_is_retried_with_smaller_steps(tmp_path, monkeypatch):
     assert ds.sequence("walk_fast__zero")["attrs"]["stats"]["attempts"] == 1
 
     # A failed template relaxation is retried alone first; the fits that waited for it keep their attempt.
-    calls.clear()
-
-    def flaky_template(garment, body, jobs, config, progress=None):
-        res = original(garment, body, jobs, config, progress=progress)
-        calls.append(([j.id for j in jobs], config.substeps))
-        return [_injected(j) if j.kind == "template" and j.attempt == 1 else r
-                for j, r in zip(jobs, res)]
-
-    monkeypatch.setattr(ex, "simulate_jobs", flaky_template)
+    calls = _patch_pools(monkeypatch, lambda j, r: _injected(j) if j.kind == "template" and j.attempt == 1 else r)
     spec1 = spec.with_overrides(shapes=["zero"])
-    # With the writes overlapped, the sequence batch simulates before the setup batch's result comes
-    # back, so the retries start one batch later; without, one batch at a time.
-    for overlap, order in ((True, [["template", "zero"], ["walk_fast__zero"], ["template"], ["zero"]]),
-                           (False, [["template", "zero"], ["template"], ["walk_fast__zero"], ["zero"]])):
+    for overlap in (True, False):
         calls.clear()
         out = tmp_path / f"t-{overlap}"
         (rep,) = generate_dataset(spec1.with_overrides(overlap_writes=overlap), out=str(out))
         assert rep.pending == 0 and not rep.failed
-        assert calls == [(ids, 20 if ids == ["template"] else 10) for ids in order]
+        assert _runs(calls) == [(["template", "zero", "walk_fast__zero"], 10), (["template"], 20), (["zero"], 10)]
         ds = open_dataset(out)
         assert ds.template["stats"]["attempts"] == 2 and ds.fit("zero")["attrs"]["stats"]["substeps"] == 10
         assert ds.manifest["failed"] == {}
 
     # A job that fails every attempt is recorded as failed: check reports it, the CLI exits 1.
-    monkeypatch.setattr(ex, "simulate_jobs", lambda g, b, jobs, c, progress=None: [
-        _injected(j) if j.kind == "sequence" else r
-        for j, r in zip(jobs, original(g, b, jobs, c, progress=progress))])
+    _patch_pools(monkeypatch, lambda j, r: _injected(j) if j.kind == "sequence" else r)
     spec2 = spec.with_overrides(shapes=["zero"])
     (rep,) = generate_dataset(spec2, out=str(tmp_path / "f"))
     assert list(rep.failed) == ["sequence:walk_fast__zero"] and rep.pending == 1
@@ -576,33 +573,30 @@ def test_object_store_commit_markers():
     loc.remove("")
 
 
-def test_batched_solver_contract(tmp_path, monkeypatch):
-    """The executor drives simgen.sim.simulate_batch: one call per batch, per-frame progress, a
-    SimulationFailure in one slot re-queued while the others are written. A stand-in with that
-    contract (built on simulate) replaces it here."""
-    import simgen.sim as sim
+def test_one_pool_keeps_its_slots_full(tmp_path, monkeypatch):
+    """The generator runs the plan in one simulation pool of execution.batch_size slots: five jobs in
+    two slots, each job starting as a slot frees up, every cloth-frame counted once, progress up to
+    the total; the store passes the check."""
+    from simgen.dataset.execute import job_cloth_frames
+    from simgen.sim.pool import SimulationPool
 
-    calls = []
+    busy = []
+    step = SimulationPool.step
 
-    def fake_batch(garment, body, jobs, config=None, *, progress=None):
-        calls.append([j.key for j in jobs])
-        out = []
-        for j in jobs:
-            if j.key == "sequence:walk_fast__b1p2" and config.substeps == 10:
-                out.append(sim.SimulationFailure(j.key, "diverged beyond the retries", "animate", 3))
-            else:
-                out.append(sim.simulate(garment, body, j.clip, j.betas, config))
-            if progress is not None:
-                progress(len(out), len(jobs), "animate")
+    def counted(self):
+        out = step(self)
+        busy.append((self.num_slots, self.busy + len(out)))
         return out
 
-    monkeypatch.setattr(sim, "simulate_batch", fake_batch)
+    monkeypatch.setattr(SimulationPool, "step", counted)
     seen = []
-    spec = micro()
+    spec = micro(batch_size=2)
     (rep,) = generate_dataset(spec, out=str(tmp_path / "b"), progress=lambda d, t: seen.append((d, t)))
-    assert calls == [["template:template", "fit:zero", "fit:b1p2"],
-                     ["sequence:walk_fast__zero", "sequence:walk_fast__b1p2"], ["sequence:walk_fast__b1p2"]]
-    assert rep.written == 2 and not rep.failed
-    assert seen[-1][0] == seen[-1][1] and len(seen) > 4
-    ds = open_dataset(tmp_path / "b")
-    assert ds.sequence("walk_fast__b1p2")["attrs"]["stats"]["attempts"] == 2
+    assert rep.written == 2 and not rep.failed and rep.retried == 0
+    plan = 1 + 2 + 2  # template, two fits, two one-frame sequences, all of the same length here
+    frames = spec.protocol_frames()
+    assert rep.cloth_frames == plan * frames == sum(b for _, b in busy)
+    # 5 jobs of equal length in 2 slots: 3 waves, the last with one slot idle.
+    assert [b for _, b in busy] == [2] * frames + [2] * frames + [1] * frames and {n for n, _ in busy} == {2}
+    assert seen[-1][0] == seen[-1][1] == rep.cloth_frames
+    assert check_dataset(tmp_path / "b").passed

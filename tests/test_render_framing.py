@@ -181,7 +181,7 @@ def test_every_render_caller_takes_the_one_framing():
 def fake_result(body, clip, *, frames: int, relax=2, ramp=3, rest=2, betas=(1.0,)):
     """A SimulationResult-like object: the body posed over the clip's first frames (as the solver
     records it), the 'cloth' a copy of the body, the protocol's frame counts and betas in
-    the metadata as the Recorder writes them."""
+    the metadata as the JobRecorder writes them."""
     b = body.check_betas(np.asarray(betas))[0]
     posed = body.forward_sequence(b, clip.poses[:frames], clip.trans[:frames]).vertices.astype(np.float32)
     P = relax + ramp + rest

@@ -1,8 +1,10 @@
-"""Ray execution of dataset batches (``simgen dataset generate --ray ADDRESS|local``).
+"""Ray execution of dataset generation (``simgen dataset generate --ray ADDRESS|local``).
 
-Each batch becomes one Ray task that runs :func:`simgen.dataset.execute.run_batch`: it simulates
-the batch (one GPU per task when the cluster has GPUs, else one CPU) and writes its nodes straight
-into the store, then returns the outcomes; the driver alone rewrites the manifest. The store must
+Each round of jobs (:mod:`simgen.dataset.generate`) is dealt into one task per GPU (or per CPU);
+each task runs :func:`simgen.dataset.execute.run_pool_task` in a Ray worker: one simulation pool
+on its own device (Ray's GPU resource), kept full until its jobs run out, writing each node
+straight into the store as its job ends; it returns the outcomes, and the driver alone rewrites the
+manifest. The store must
 be reachable from every worker under the same name: a local folder for ``--ray local`` or a
 single machine, a shared filesystem or an fsspec URL (s3://, gs://, ...) for a cluster.
 
@@ -25,18 +27,20 @@ __all__ = ["RayExecutor", "MAX_TASK_RETRIES"]
 MAX_TASK_RETRIES = 2
 
 
-def _run_batch_task(task):
-    # Runs in a Ray worker: quiet Warp, then the same function as local execution.
+def _run_pool_task(task, budget_s):
+    # Runs in a Ray worker: quiet Warp, then the same function as local execution (the budget
+    # becomes a deadline on the worker's own clock).
+    import time
+
     from simgen._warp_log import quiet_warp
-    from simgen.dataset.execute import run_batch
+    from simgen.dataset.execute import run_pool_task
 
     quiet_warp()
-
-    return run_batch(task)
+    return run_pool_task(task, deadline=None if budget_s is None else time.perf_counter() + budget_s)
 
 
 class RayExecutor:
-    """Submits batches as Ray tasks; at most one task per GPU (or per CPU) in flight."""
+    """Runs the tasks of a round as Ray tasks, one per GPU (or per CPU) at a time."""
 
     def __init__(self, address: str, spec) -> None:
         try:
@@ -68,30 +72,34 @@ class RayExecutor:
             self.parallel, self.device, opts = gpus, "cuda:0", {"num_gpus": 1, "num_cpus": 1}
         else:
             self.parallel, self.device, opts = cpus, "cpu", {"num_cpus": 1}
-        self._remote = ray.remote(max_retries=MAX_TASK_RETRIES, retry_exceptions=True, **opts)(_run_batch_task)
-        self._pending: dict = {}
+        self._remote = ray.remote(max_retries=MAX_TASK_RETRIES, retry_exceptions=True, **opts)(_run_pool_task)
 
-    def submit(self, task, progress=None) -> None:
-        ref = self._remote.remote(task)
-        self._pending[ref] = task
+    def run(self, tasks, on_outcome, progress, budget_s) -> list:
+        """Run ``tasks`` at once; on_outcome(outcome) for each job as its task's result comes back;
+        progress(cloth_frames) once per task. Returns each task's result, in order."""
+        pending = {self._remote.remote(task, budget_s): i for i, task in enumerate(tasks)}
+        results: list = [None] * len(tasks)
+        frames = 0
+        while pending:
+            ready, _ = self.ray.wait(list(pending), num_returns=1)
+            i = pending.pop(ready[0])
+            results[i] = self._get(ready[0], tasks[i])
+            for o in results[i]["outcomes"]:
+                on_outcome(o)
+            frames += results[i]["cloth_frames"]
+            progress(frames)
+        return results
 
-    def in_flight(self) -> int:
-        return len(self._pending)
-
-    def next_result(self):
-
+    def _get(self, ref, task) -> dict:
         ray = self.ray
-        ready, _ = ray.wait(list(self._pending), num_returns=1)
-        ref = ready[0]
-        task = self._pending.pop(ref)
         try:
-            return task, ray.get(ref)
+            return ray.get(ref)
         except ray.exceptions.RayTaskError as exc:
             cause = exc.cause if getattr(exc, "cause", None) is not None else exc
             if isinstance(cause, InputError):
                 raise cause from None
             first = task.jobs[0].id if task.jobs else "?"
-            raise GenerationError(f"a Ray task (batch starting with {first!r}, {len(task.jobs)} jobs) failed after "
+            raise GenerationError(f"a Ray task (pool starting with {first!r}, {len(task.jobs)} jobs) failed after "
                                   f"{MAX_TASK_RETRIES} retries: {type(cause).__name__}: {cause}; the store is "
                                   f"consistent, rerun to resume") from None
         except ray.exceptions.RayError as exc:

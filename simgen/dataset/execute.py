@@ -1,4 +1,4 @@
-"""Jobs, batches and the function that simulates one batch and writes its nodes.
+"""Jobs, the tasks that run them, and the function that simulates a task's jobs and writes their nodes.
 
 The plan of a store is a list of :class:`Job`: one ``template`` job (the garment relaxed on the
 template body: betas 0, a one-frame rest-pose clip), one ``fit`` job per shape (same clip, betas
@@ -9,15 +9,13 @@ runs simulate()'s start protocol from the garment template, so the relaxation of
 and the same for all jobs (the body is the template body at rest throughout), and simulate()
 takes no initial state.
 
-:func:`run_batch` runs in the driver (local execution) or in a Ray task: it simulates the jobs
-of one batch in one batched solver call (:func:`simgen.sim.simulate_batch`), then writes each
-finished job as a committed node. The two phases are :func:`simulate_batch_task` (device work, on the thread that owns Warp) and :func:`write_batch`
-(host work: ground truth, statistics, Zarr, commits); the local executor runs the write of one
-batch in a background thread while the next batch simulates (:mod:`simgen.dataset.generate`).
-Clips of unequal length share a batch: the batch runs to the longest clip and each result is cut
-to its own frames (simulate_batch's contract), so the planner groups clips of similar length. An instance
-that diverges comes back as a failure in its slot while the others are written; the driver puts
-it into a later batch with the substep halved (attempt k runs substeps * 2^(k-1)) until
+:func:`run_pool_task` runs in the driver (local execution) or in a Ray task: it keeps one
+:class:`simgen.sim.SimulationPool` (:func:`pool_slots`) full with the task's jobs (continuous
+batching: a slot whose job ended takes the next one at the next frame, each job with its own start
+protocol) and hands each job that ends to a :class:`NodeWriter` (ground truth, statistics, Zarr,
+commit), in a background thread behind the simulation with ``execution.overlap_writes``. A job
+that diverges comes back as a failure while the others are written; the driver runs it again in a
+later pool with the substep halved (attempt k runs substeps * 2^(k-1)) until
 ``execution.max_attempts``. A sequence with a strain outlier (a triangle past the check's limit
 on some frame) is such a failure too while attempts are left (:func:`_strain_outlier`).
 """
@@ -26,7 +24,9 @@ from __future__ import annotations
 
 import functools
 import time
-from dataclasses import dataclass, field, replace
+from collections import deque
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -34,8 +34,7 @@ from simgen._warp_log import quiet_warp
 from simgen.dataset.storage import Location, StoreWriteError
 from simgen.errors import InputError
 
-__all__ = ["Job", "BatchTask", "SimulatedBatch", "run_batch", "simulate_batch_task", "write_batch", "rest_clip",
-           "simulate_jobs", "job_cloth_frames"]
+__all__ = ["Job", "BatchTask", "NodeWriter", "run_pool_task", "pool_slots", "rest_clip", "job_cloth_frames"]
 
 
 @dataclass
@@ -68,7 +67,8 @@ class Job:
 
 @dataclass
 class BatchTask:
-    """What a batch needs, picklable for Ray: store location, spec, garment name, jobs, attempt."""
+    """What :func:`run_pool_task` needs, picklable for Ray: store location, spec, garment name, jobs
+    (all of one attempt), attempt, the device (None: the spec's) and the body's hash."""
 
     location: str
     spec: object
@@ -77,7 +77,6 @@ class BatchTask:
     attempt: int = 1
     device: str | None = None
     body_hash: str | None = None
-    meta: dict = field(default_factory=dict)
 
     @property
     def substeps_factor(self) -> int:
@@ -92,8 +91,32 @@ def rest_clip(fps: float, name: str = "rest"):
 
 
 def job_cloth_frames(spec, jobs) -> int:
-    """Cloth-frames a batch simulates: (protocol + clip frames) per job; frame 0 of a clip takes no step."""
+    """Cloth-frames the jobs simulate: (protocol + clip frames) per job; frame 0 of a clip takes no step."""
     return sum(spec.protocol_frames() + j.frames - 1 for j in jobs)
+
+
+#: Most slots a pool takes on a GPU; a CPU pool's slots without execution.batch_size.
+MAX_GPU_SLOTS, CPU_SLOTS = 128, 4
+#: [bytes] GPU memory one slot of a pool takes per garment vertex (the 4,424-vertex T-shirt on the
+#: 6,890-vertex body: about 98 MB, measured on an H100 with the solver, body, collider and statistics).
+SLOT_BYTES_PER_GARMENT_VERTEX = 22_500
+#: Share of the device's free memory a pool may fill.
+SLOT_MEMORY_SHARE = 0.7
+
+
+def pool_slots(spec, device: str, garment) -> int:
+    """The slots of a generation pool: ``execution.batch_size``, or with 0 as many as
+    ``SLOT_MEMORY_SHARE`` of the GPU's free memory holds (at most ``MAX_GPU_SLOTS``; ``CPU_SLOTS`` on
+    the CPU)."""
+    if spec.batch_size > 0:
+        return spec.batch_size
+    if not str(device).startswith("cuda"):
+        return CPU_SLOTS
+    import warp as wp
+
+    free = wp.get_device(device).free_memory
+    per = SLOT_BYTES_PER_GARMENT_VERTEX * garment.num_vertices
+    return int(max(1, min(MAX_GPU_SLOTS, SLOT_MEMORY_SHARE * free // per)))
 
 
 @functools.lru_cache(maxsize=4)
@@ -108,25 +131,6 @@ def _load_garment(name: str, body_source: str):
     from simgen.garment.library import load_garment
 
     return load_garment(name, body=_load_body(body_source))
-
-
-def simulate_jobs(garment, body, jobs: list[Job], config, progress=None) -> list:
-    """Simulate jobs as one batch (:func:`simgen.sim.simulate_batch`, all instances in one system):
-    a :class:`simgen.sim.SimulationResult` or :class:`simgen.sim.SimulationFailure` per job, in order.
-
-    progress(cloth_frames_done) is called after every batch frame.
-    """
-    from simgen.sim import SimulationJob, simulate_batch
-
-    quiet_warp()
-    n = len(jobs)
-
-    def on_batch(done, total_frames, phase):
-        if progress is not None:
-            progress(done * n)
-
-    return simulate_batch(garment, body, [SimulationJob(j.clip, betas=j.betas, key=j.key) for j in jobs], config,
-                          progress=on_batch)
 
 
 def _frame_stats(result, faces, rest_inverse) -> tuple[dict, dict]:
@@ -184,60 +188,188 @@ def _rest_frames(result) -> np.ndarray:
     return np.asarray(result.protocol_positions)[phases == "rest"].astype(np.float32)
 
 
-@dataclass
-class SimulatedBatch:
-    """A batch between its two phases: simulated (host arrays), not written yet.
-
-    What :func:`write_batch` needs and nothing on the device: the task, the spec with its device
-    resolved, the solver config, garment and body (host objects), the jobs simulated (template
-    first), their results (SimulationResult or SimulationFailure), the outcomes of jobs whose node was
-    already committed, and the phase's timings (wall, step_s) and cloth-frames.
-    """
-
-    task: BatchTask
-    spec: object
-    config: object
-    garment: object
-    body: object
-    todo: list
-    results: list
-    reused: list
-    wall: float
-    step_s: float
-    cloth_frames: int
-
-
 def _outcome_base(job: Job) -> dict:
     return {"kind": job.kind, "id": job.id, "attempt": job.attempt, "frames": job.frames, "motion": job.motion,
             "shape_id": job.shape_id, "split": job.split}
 
 
-def run_batch(task: BatchTask, progress=None) -> dict:
-    """Simulate one batch and write its nodes; returns {outcomes, error, wall, cloth_frames, step_s, write_s}.
+class NodeWriter:
+    """Writes simulated jobs into a store as committed nodes: ground truth, statistics, Zarr.
 
-    The two phases in sequence: :func:`simulate_batch_task`, then :func:`write_batch` (the local
-    executor may run the second in a background thread while the next batch simulates; Ray tasks
-    call this). wall [s]: the batch's simulation (``simulate_jobs``); step_s [s]: the solver's
-    stepping within it (the per-frame step times of the batch's longest job, protocol included; the
-    rest of ``wall`` is posing, statistics and host copies); write_s [s]: ground truth, statistics
-    and store writes.
-
-    Jobs whose node is already committed (an earlier attempt of this task) are not simulated again.
-    Each outcome: ok, kind, id, attempt, checksum (ok) or message (failed), frames, motion,
-    shape_id, split. A write failure stops the batch: the outcomes so far are returned with
-    ``error`` set to one sentence (the store stays consistent; what was committed is kept).
+    Host work only (numpy, Zarr, the store), so it may run in a thread other than the simulation's;
+    one job at a time, in the order the jobs ended (a fit needs the template written before it).
+    spec, config: the store's spec and the attempt's :class:`SimulationConfig`; garment, body: host
+    objects; location: the store's :class:`Location`; slots: the pool's size (recorded).
     """
-    return write_batch(simulate_batch_task(task, progress=progress))
+
+    def __init__(self, spec, config, garment, body, location: Location, slots: int) -> None:
+        from simgen.dataset.quality import triangle_rest_inverse
+
+        self.spec, self.config, self.garment, self.body, self.loc = spec, config, garment, body, location
+        self.slots = int(slots)
+        self.rest_inv = triangle_rest_inverse(garment.vertices, garment.faces)
+        self.smoothing = spec.smoothing_params()
+        self.faces = np.asarray(garment.faces)
+        self.template_smoothed = None
+
+    def write(self, job: Job, res) -> dict:
+        """The outcome of one job (ok with its checksum, or failed / waiting with a message); its node
+        is committed when ok. Raises :class:`StoreWriteError` when the store cannot be written."""
+        from simgen.sim import SimulationFailure
+
+        msg = None
+        if isinstance(res, SimulationFailure):
+            msg = f"{res.message} (phase {res.phase}, frame {res.frame})"
+        elif res.positions.shape[0] != job.frames:
+            msg = f"the solver returned {res.positions.shape[0]} frames for a clip of {job.frames}"
+        elif not np.all(np.isfinite(res.positions)):
+            msg = "non-finite positions (NaN or inf) in the result"
+        if msg is not None:
+            return {**_outcome_base(job), "ok": False, "message": msg}
+        per_frame, summary = _frame_stats(res, self.faces, self.rest_inv)
+        outlier = _strain_outlier(self.spec, job, per_frame)
+        if outlier is not None:
+            return {**_outcome_base(job), "ok": False, "message": outlier}
+        summary.update(wall_time=float(res.metadata.get("wall_share", res.metadata["wall_time"])),
+                       batch_size=self.slots, attempts=job.attempt, substeps=self.config.substeps,
+                       device=str(self.config.device))
+        if job.kind == "template":
+            arrays, attrs = self._template(res, summary)
+        elif job.kind == "fit":
+            if self.template_smoothed is None:
+                self.template_smoothed = _stored_template_smoothed(self.loc)
+            if self.template_smoothed is None:
+                return {**_outcome_base(job), "ok": False, "waiting": True,
+                        "message": "the template relaxation is not in the store yet"}
+            arrays, attrs = self._fit(job, res, summary)
+        else:
+            arrays, attrs = self._sequence(job, res, per_frame, summary)
+        chunks = {"garment_vertices": (self.spec.chunk_frames,) + res.positions.shape[1:],
+                  "rest_garment_vertices": (self.spec.chunk_frames,) + res.positions.shape[1:]}
+        commit = self.loc.write_node(_node_rel(job), arrays, attrs, chunks=chunks)
+        return {**_outcome_base(job), "ok": True, "checksum": commit["checksum"]}
+
+    def _template(self, res, summary) -> tuple[dict, dict]:
+        from simgen.dataset.groundtruth import smooth_garment
+
+        garment, faces = self.garment, self.faces
+        relaxed = res.positions[0].astype(np.float64)
+        # Rounded to the stored float32 so fits of this run and of later ones subtract the same T_c.
+        smoothed = smooth_garment(relaxed, faces, self.smoothing).astype(np.float32).astype(np.float64)
+        self.template_smoothed = smoothed
+        arrays = {"vertices": relaxed.astype(np.float32), "smoothed": smoothed.astype(np.float32),
+                  "faces": faces.astype(np.int32), "skin_weights": np.asarray(garment.skin_weights, dtype=np.float32),
+                  "garment_template": np.asarray(garment.vertices, dtype=np.float32)}
+        attrs = {"smoothing": self.smoothing.to_dict(), "stats": summary, "garment": garment.name,
+                 "protocol_frames": self.spec.protocol_frames()}
+        return arrays, attrs
+
+    def _fit(self, job, res, summary) -> tuple[dict, dict]:
+        from simgen.dataset.groundtruth import fit_displacement
+
+        fit_v = res.positions[0].astype(np.float64)
+        arrays = {"betas": _full_betas(job.betas, self.body).astype(np.float32), "vertices": fit_v.astype(np.float32),
+                  "fit_displacement": fit_displacement(fit_v, self.template_smoothed, self.faces, self.smoothing
+                                                       ).astype(np.float32)}
+        if self.spec.store_rest_frames:
+            arrays["rest_vertices"] = _rest_frames(res)
+        attrs = {"shape_id": job.shape_id, "betas": _full_betas(job.betas, self.body).tolist(), "stats": summary}
+        return arrays, attrs
+
+    def _sequence(self, job, res, per_frame, summary) -> tuple[dict, dict]:
+        spec, body = self.spec, self.body
+        T, clip = job.frames, job.clip
+        betas = np.repeat(_full_betas(job.betas, body)[None], T, 0).astype(np.float32)
+        arrays = {"garment_vertices": res.positions.astype(np.float32), "poses": clip.poses.astype(np.float32),
+                  "trans": clip.trans.astype(np.float32), "betas": betas}
+        if spec.store_rest_frames:
+            arrays["rest_garment_vertices"] = _rest_frames(res)
+        for k, v in per_frame.items():
+            arrays[f"stats/{k}"] = np.asarray(v)
+        attrs = {"motion": job.motion, "motion_source": job.motion_source, "fps": float(spec.fps),
+                 "split": job.split, "shape_id": job.shape_id, "betas": _full_betas(job.betas, body).tolist(),
+                 "frames": T, "start_frame": spec.start_frame, "stats": summary,
+                 "retries": summary["solver_retries"], "wall_time": summary["wall_time"]}
+        return arrays, attrs
 
 
-def simulate_batch_task(task: BatchTask, progress=None) -> SimulatedBatch:
-    """The simulation phase of :func:`run_batch`: runs on the thread that owns the device (Warp).
+class _Writes:
+    """The node writes of a pool run: in a background thread behind the simulation (``overlap``) or at
+    once; outcomes are handed on in the order the jobs ended."""
 
-    Raises what the simulation raises (and the testing hook's injected fault); writes nothing.
+    def __init__(self, writer: NodeWriter, overlap: bool, on_outcome) -> None:
+        self.writer, self.on_outcome = writer, on_outcome
+        self.pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="simgen-write") if overlap else None
+        self.pending: deque = deque()
+        self.outcomes: list = []
+        self.error: str | None = None
+        self.write_s = 0.0     # [s] spent writing
+        self.wait_s = 0.0      # [s] of it the simulation waited for
+
+    def submit(self, job: Job, res) -> None:
+        if self.error is not None:
+            return
+        if self.pool is None:
+            self._finish(job, *self._timed(job, res))
+        else:
+            self.pending.append((job, self.pool.submit(self._timed, job, res)))
+
+    def _timed(self, job, res):
+        t0 = time.perf_counter()
+        try:
+            return self.writer.write(job, res), None, time.perf_counter() - t0
+        except StoreWriteError as exc:
+            return None, str(exc), time.perf_counter() - t0
+
+    def collect(self, wait: bool = False) -> None:
+        """Hand on the outcomes of the writes that have ended (all of them with ``wait``)."""
+        while self.pending and (wait or self.pending[0][1].done()):
+            job, future = self.pending.popleft()
+            t0 = time.perf_counter()
+            result = future.result()
+            self.wait_s += time.perf_counter() - t0
+            self._finish(job, *result)
+
+    def _finish(self, job, outcome, error, seconds) -> None:
+        self.write_s += seconds
+        if self.pool is None:
+            self.wait_s += seconds
+        if error is not None:
+            self.error = self.error or error
+            return
+        self.outcomes.append(outcome)
+        if self.on_outcome is not None:
+            self.on_outcome(outcome)
+
+    def close(self) -> None:
+        """Wait for the writes submitted (each is committed or not: the store stays consistent)."""
+        try:
+            self.collect(wait=True)
+        finally:
+            if self.pool is not None:
+                self.pool.shutdown(wait=True)
+
+
+def run_pool_task(task: BatchTask, *, progress=None, on_outcome=None, deadline: float | None = None) -> dict:
+    """Simulate a task's jobs in one :class:`simgen.sim.SimulationPool` (:func:`pool_slots` slots)
+    (continuous batching: a slot whose job ended takes the next at the next frame) and write each
+    job as it ends (behind the simulation with ``spec.overlap_writes``).
+
+    progress(cloth_frames_done) after every pool frame; on_outcome(outcome) as each job's write ends
+    (in this thread); deadline: a ``time.perf_counter()`` value: no job starts that would not end
+    before it (at the pool's mean frame time so far), and at it the jobs still running are dropped
+    (the first ones start before any frame time is known); the jobs not started or dropped come back
+    in ``not_done``, the cloth-frames the dropped ones had run in ``abandoned_cloth_frames``. Jobs whose node is already committed (an earlier attempt of this task) are not
+    simulated again. Returns {outcomes, error, not_done, abandoned_cloth_frames, slots, wall, cloth_frames, step_s, write_s,
+    write_wait}: slots: the pool's; wall [s] the pool's frames (simulation, statistics, host copies); step_s [s] the
+    solver's stepping within them; write_s [s] the node writes; write_wait [s] the part of them the
+    simulation waited for. A write failure stops the task: ``error`` is one sentence (the store
+    stays consistent; what was committed is kept).
     """
-    from simgen.sim import SimulationFailure
+    from simgen.sim import SimulationJob, SimulationPool
 
     _injected_fault()
+    quiet_warp()
     spec = task.spec
     loc = Location(task.location)
     body = _load_body(spec.body)
@@ -247,117 +379,54 @@ def simulate_batch_task(task: BatchTask, progress=None) -> SimulatedBatch:
     if task.device is not None:
         spec = replace(spec, device=task.device)
     config = spec.solver_config(substeps_factor=task.substeps_factor)
-    reused: list[dict] = []
-    todo = []
+    outcomes, todo = [], []
     for job in task.jobs:
         commit = loc.committed(_node_rel(job))
         if commit is not None:
-            reused.append({**_outcome_base(job), "ok": True, "checksum": commit["checksum"], "reused": True})
+            outcomes.append({**_outcome_base(job), "ok": True, "checksum": commit["checksum"], "reused": True})
+            if on_outcome is not None:
+                on_outcome(outcomes[-1])
         else:
             todo.append(job)
-    # Template first: the fits of the same batch need its smoothed version.
-    todo.sort(key=lambda j: {"template": 0, "fit": 1, "sequence": 2}[j.kind])
-    t0 = time.perf_counter()
-    results = simulate_jobs(garment, body, todo, config, progress=progress) if todo else []
-    wall = time.perf_counter() - t0
-    step_s = max((float(np.sum(r.stats["step_time"])) + float(np.sum(r.protocol_stats.get("step_time", 0.0)))
-                  for r in results if not isinstance(r, SimulationFailure) and "step_time" in r.stats), default=0.0)
-    return SimulatedBatch(task=task, spec=spec, config=config, garment=garment, body=body, todo=todo,
-                          results=results, reused=reused, wall=wall, step_s=step_s,
-                          cloth_frames=job_cloth_frames(spec, todo))
+    report = {"outcomes": outcomes, "error": None, "not_done": [], "abandoned_cloth_frames": 0, "slots": 0, "wall": 0.0, "cloth_frames": 0,
+              "step_s": 0.0, "write_s": 0.0, "write_wait": 0.0}
+    if not todo:
+        return report
+    slots = min(pool_slots(spec, config.device, garment), len(todo))
+    pool = SimulationPool(garment, body, slots, config, fps=spec.fps)
+    for job in todo:
+        pool.submit(SimulationJob(job.clip, betas=job.betas, key=job.key), tag=job)
+    writes = _Writes(NodeWriter(spec, config, garment, body, loc, slots), spec.overlap_writes, on_outcome)
 
+    def accept(job, frames) -> bool:
+        if deadline is None or pool.frames_run == 0:
+            return True
+        return time.perf_counter() + frames * pool.wall / pool.frames_run <= deadline
 
-def write_batch(simulated: SimulatedBatch) -> dict:
-    """The write phase of :func:`run_batch`: ground truth, statistics and one committed node per job.
-
-    Host work only (numpy, Zarr, the store), so it may run in a thread other than the simulation's.
-    Returns :func:`run_batch`'s dict; a :class:`StoreWriteError` ends the batch with ``error`` set.
-    """
-    from simgen.dataset.groundtruth import fit_displacement, smooth_garment
-    from simgen.dataset.quality import triangle_rest_inverse
-    from simgen.sim import SimulationFailure
-
-    t_write = time.perf_counter()
-    sb = simulated
-    spec, config, garment, body, wall = sb.spec, sb.config, sb.garment, sb.body, sb.wall
-    todo, results, cloth_frames = sb.todo, sb.results, sb.cloth_frames
-    loc = Location(sb.task.location)
-    base = _outcome_base
-    outcomes: list[dict] = list(sb.reused)
-    rest_inv = triangle_rest_inverse(garment.vertices, garment.faces)
-    smoothing = spec.smoothing_params()
-    faces = np.asarray(garment.faces)
-    template_smoothed = None
-    error = None
-    for job, res in zip(todo, results):
-        msg = None
-        if isinstance(res, SimulationFailure):
-            msg = f"{res.message} (phase {res.phase}, frame {res.frame})"
-        elif res.positions.shape[0] != job.frames:
-            msg = f"the solver returned {res.positions.shape[0]} frames for a clip of {job.frames}"
-        elif not np.all(np.isfinite(res.positions)):
-            msg = "non-finite positions (NaN or inf) in the result"
-        if msg is not None:
-            outcomes.append({**base(job), "ok": False, "message": msg})
-            continue
-        per_frame, summary = _frame_stats(res, faces, rest_inv)
-        outlier = _strain_outlier(spec, job, per_frame)
-        if outlier is not None:
-            outcomes.append({**base(job), "ok": False, "message": outlier})
-            continue
-        share = wall * (spec.protocol_frames() + job.frames - 1) / max(cloth_frames, 1)
-        summary.update(wall_time=share, batch_wall_time=wall, batch_size=len(todo), attempts=job.attempt,
-                       substeps=config.substeps, device=str(config.device))
-        try:
-            if job.kind == "template":
-                relaxed = res.positions[0].astype(np.float64)
-                # Rounded to the stored float32 so fits of this batch and of later ones subtract the same T_c.
-                template_smoothed = smooth_garment(relaxed, faces, smoothing).astype(np.float32).astype(np.float64)
-                arrays = {"vertices": relaxed.astype(np.float32), "smoothed": template_smoothed.astype(np.float32),
-                          "faces": faces.astype(np.int32),
-                          "skin_weights": np.asarray(garment.skin_weights, dtype=np.float32),
-                          "garment_template": np.asarray(garment.vertices, dtype=np.float32)}
-                attrs = {"smoothing": smoothing.to_dict(), "stats": summary, "garment": garment.name,
-                         "protocol_frames": spec.protocol_frames()}
-            elif job.kind == "fit":
-                if template_smoothed is None:
-                    template_smoothed = _stored_template_smoothed(loc)
-                if template_smoothed is None:
-                    outcomes.append({**base(job), "ok": False, "waiting": True,
-                                     "message": "the template relaxation is not in the store yet"})
-                    continue
-                fit_v = res.positions[0].astype(np.float64)
-                arrays = {"betas": _full_betas(job.betas, body).astype(np.float32),
-                          "vertices": fit_v.astype(np.float32),
-                          "fit_displacement": fit_displacement(fit_v, template_smoothed, faces, smoothing
-                                                               ).astype(np.float32)}
-                if spec.store_rest_frames:
-                    arrays["rest_vertices"] = _rest_frames(res)
-                attrs = {"shape_id": job.shape_id, "betas": _full_betas(job.betas, body).tolist(), "stats": summary}
-            else:
-                T = job.frames
-                clip = job.clip
-                betas = np.repeat(_full_betas(job.betas, body)[None], T, 0).astype(np.float32)
-                arrays = {"garment_vertices": res.positions.astype(np.float32),
-                          "poses": clip.poses.astype(np.float32), "trans": clip.trans.astype(np.float32),
-                          "betas": betas}
-                if spec.store_rest_frames:
-                    arrays["rest_garment_vertices"] = _rest_frames(res)
-                for k, v in per_frame.items():
-                    arrays[f"stats/{k}"] = np.asarray(v)
-                attrs = {"motion": job.motion, "motion_source": job.motion_source, "fps": float(spec.fps),
-                         "split": job.split, "shape_id": job.shape_id, "betas": _full_betas(job.betas, body).tolist(),
-                         "frames": T, "start_frame": spec.start_frame, "stats": summary,
-                         "retries": summary["solver_retries"], "wall_time": summary["wall_time"]}
-            chunks = {"garment_vertices": (spec.chunk_frames,) + res.positions.shape[1:],
-                      "rest_garment_vertices": (spec.chunk_frames,) + res.positions.shape[1:]}
-            commit = loc.write_node(_node_rel(job), arrays, attrs, chunks=chunks)
-        except StoreWriteError as exc:
-            error = str(exc)
-            break
-        outcomes.append({**base(job), "ok": True, "checksum": commit["checksum"]})
-    return {"outcomes": outcomes, "error": error, "wall": wall, "cloth_frames": cloth_frames, "step_s": sb.step_s,
-            "write_s": time.perf_counter() - t_write}
+    pool.accept = accept
+    abandoned: list = []
+    try:
+        while pool.busy or pool.queued:
+            for job, res in pool.step():
+                writes.submit(job, res)
+            writes.collect()
+            if progress is not None:
+                progress(pool.cloth_frames)
+            if writes.error is not None:
+                pool.refused += pool.drop_queue()
+                break
+            if deadline is not None and time.perf_counter() > deadline:
+                # Past the budget (the first jobs start before any frame time is known): stop.
+                pool.refused += pool.drop_queue()
+                abandoned = pool.abandon()
+                break
+    finally:
+        writes.close()
+    report.update(not_done=pool.refused + abandoned, abandoned_cloth_frames=sum(
+                      job_cloth_frames(spec, [j]) for j in abandoned), slots=slots, outcomes=outcomes + writes.outcomes, error=writes.error, wall=pool.wall,
+                  cloth_frames=pool.cloth_frames, step_s=pool.step_time, write_s=writes.write_s,
+                  write_wait=writes.wait_s)
+    return report
 
 
 def _injected_fault() -> None:

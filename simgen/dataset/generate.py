@@ -1,20 +1,24 @@
-"""generate_dataset(): plan the jobs of a spec, run them in batches (locally or on Ray), keep the store consistent.
+"""generate_dataset(): plan the jobs of a spec, run them in simulation pools (locally or on Ray), keep
+the store consistent.
 
 One store per garment (docs/architecture.md, "Dataset store"). For each store the driver:
 
 1. opens or creates it (:class:`simgen.dataset.store.DatasetStore`; a store made with a different
    content key is refused), takes its lock and reconciles it with the manifest (resume after kill -9);
 2. plans the jobs (:func:`plan_jobs`) and keeps those whose node is not in the manifest;
-3. runs a first batch with the template relaxation and the pending fits, then the pending sequences
-   in batches of ``execution.batch_size`` clips of similar length (longest first); locally, the
-   write phase of a batch runs in a background thread while the next batch simulates
-   (``execution.overlap_writes``, :class:`_LocalExecutor`); results are entered in batch order;
-4. enters every outcome into the manifest (rewritten atomically after each batch) and re-queues a
-   failed job (diverged, or a sequence with a strain outlier: ``execution.retry_strain_outliers``)
-   into a later batch with the substep halved, up to ``max_attempts``.
+3. runs them in one simulation pool (:func:`simgen.dataset.execute.run_pool_task`: continuous
+   batching, each finished job written in the background while the pool steps on): the template
+   relaxation first, then the fits, then the sequences longest first, each starting as a slot
+   frees up; on Ray the jobs are dealt into one pool per GPU worker
+   (:mod:`simgen.dataset.distributed`);
+4. enters every outcome into the manifest (rewritten atomically after each) and runs a failed job
+   (diverged, or a sequence with a strain outlier: ``execution.retry_strain_outliers``) again in a
+   later pool with the substep halved, up to ``max_attempts`` (a pool shares one substep; a failed
+   template relaxation runs again alone first, since the fits need it).
 
 ``max_sequences`` and ``time_budget`` make a run do a part of the plan (the store stays resumable:
-the next run continues). With ``ray`` the batches become Ray tasks (:mod:`simgen.dataset.distributed`).
+the next run continues); under a time budget a pool starts no job that it would not finish in time,
+at its mean frame time so far, and drops the jobs still running when the budget is spent.
 """
 
 from __future__ import annotations
@@ -22,14 +26,11 @@ from __future__ import annotations
 import hashlib
 import json
 import time
-from collections import deque
-from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from simgen.dataset.execute import (BatchTask, Job, job_cloth_frames, rest_clip, run_batch, simulate_batch_task,
-                                    write_batch)
+from simgen.dataset.execute import BatchTask, Job, job_cloth_frames, rest_clip, run_pool_task
 from simgen.dataset.spec import DatasetSpec, load_spec
 from simgen.dataset.storage import FORMAT_VERSION, Location, StoreWriteError
 from simgen.dataset.store import DatasetStore
@@ -52,16 +53,17 @@ class StoreReport:
     failed: dict = field(default_factory=dict)
     pending: int = 0
     cloth_frames: int = 0
-    # Timings. wall is the run's wall clock; the others are summed over batches, phase by phase. With
-    # execution.overlap_writes (local runs) a batch is written while the next one simulates, so
-    # simulate_wall + write_wall exceeds wall by the write time hidden that way; write_wait is the
-    # part of write_wall the driver waited for (all of it without the overlap, and on Ray).
+    slots: int = 0              # the largest simulation pool's slots
+    # Timings. wall is the run's wall clock; the others are summed over pools. With
+    # execution.overlap_writes a job is written while the pool steps on, so simulate_wall +
+    # write_wall exceeds wall by the write time hidden that way; write_wait is the part of write_wall
+    # the simulation waited for (all of it without the overlap).
     wall: float = 0.0
-    simulate_wall: float = 0.0  # [s] summed over batches: simulate_batch calls
+    simulate_wall: float = 0.0  # [s] summed over pools: their frames
     step_wall: float = 0.0      # [s] of which the solver's stepping (the rest: posing, statistics, copies)
     write_wall: float = 0.0     # [s] ground truth, statistics and store writes
-    write_wait: float = 0.0     # [s] of write_wall not hidden behind a simulation
-    # Jobs simulated again (divergence or a strain outlier), and what the batches of those later
+    write_wait: float = 0.0     # [s] of write_wall not hidden behind the simulation
+    # Jobs simulated again (divergence or a strain outlier), and what the pools of those later
     # attempts cost: their cloth-frames (also in cloth_frames) and simulation wall [s].
     retried: int = 0
     retry_cloth_frames: int = 0
@@ -170,116 +172,47 @@ def plan_jobs(spec: DatasetSpec, garment_name: str, body) -> list[Job]:
     return jobs
 
 
-def _batches(spec: DatasetSpec, jobs: list[Job], attempt: int) -> list[list[Job]]:
-    """Setup jobs (template, fits) in one batch; sequences longest first in batches of batch_size."""
-    setup = [j for j in jobs if j.kind != "sequence"]
-    seqs = sorted((j for j in jobs if j.kind == "sequence"), key=lambda j: -j.frames)
-    out = [setup] if setup else []
-    bs = spec.batch_size
-    out += [seqs[i:i + bs] for i in range(0, len(seqs), bs)]
-    return out
+def _plan_order(jobs: list[Job]) -> list[Job]:
+    """Template, fits (plan order), then sequences longest first (the pool's tail stays short)."""
+    rank = {"template": 0, "fit": 1, "sequence": 2}
+    return sorted(jobs, key=lambda j: (rank[j.kind], -j.frames if j.kind == "sequence" else 0))
 
 
-@dataclass
-class _Pending:
-    """A batch of the local executor past its simulation: waiting for the writer, being written
-    (future) or failed (error, raised when its result is asked for)."""
+def _next_round(queue: list[Job], first: bool) -> list[Job]:
+    """The jobs of the next pool, taken out of ``queue``: at first every job; later a template retry
+    alone (the fits waiting for it need it written), else every job of the lowest attempt (a pool
+    shares its substep)."""
+    if not first and any(j.kind == "template" for j in queue):
+        chosen = [j for j in queue if j.kind == "template"][:1]
+    else:
+        low = min(j.attempt for j in queue)
+        chosen = [j for j in queue if j.attempt == low]
+    for j in chosen:
+        queue.remove(j)
+    return _plan_order(chosen)
 
-    task: BatchTask
-    simulated: object = None
-    future: Future | None = None
-    error: BaseException | None = None
+
+def _split(jobs: list[Job], parts: int) -> list[list[Job]]:
+    """Jobs dealt round-robin (in plan order) into at most ``parts`` groups of similar work."""
+    parts = max(1, min(parts, len(jobs)))
+    return [jobs[i::parts] for i in range(parts)]
 
 
 class _LocalExecutor:
-    """Runs the batches in this process; results come back in submission order.
+    """Runs each task in this process, one after another (:func:`run_pool_task`); the outcomes
+    reach the driver as the jobs' writes end."""
 
-    The simulation phase (:func:`simulate_batch_task`) runs in the calling thread when a result is
-    asked for, so progress is live and Warp stays on one thread. With ``overlap`` (the spec's
-    ``execution.overlap_writes``) the write phase (:func:`write_batch`: ground truth, statistics,
-    Zarr, commits; host work only) runs in one background thread, one batch at a time:
-    :meth:`next_result` starts the write of the oldest simulated batch, simulates the next queued
-    batch meanwhile, then waits for that write and returns its result. The driver keeps
-    ``parallel`` = 2 batches in flight, so batch k is written while batch k+1 simulates, and a
-    batch's write starts only once the driver has recorded the one before it: when a write fails,
-    no later batch has been written. Without ``overlap``: :func:`run_batch`, one batch at a time.
+    parallel = 1
 
-    ``simultaneous`` is how many simulations run at the same time (1 here; one per worker on Ray):
-    what the driver's time-budget estimate divides the throughput by.
-
-    An exception of a simulation is raised when that batch's result is asked for (the batch being
-    written is returned first), one of a write when its result is; a :class:`StoreWriteError` comes
-    back in the result's ``error`` as from :func:`run_batch`. :meth:`drain` drops the batches not
-    written and waits for the write in progress (the driver calls it before it releases the store's
-    lock); :meth:`close` drains and stops the thread.
-    """
-
-    simultaneous = 1
-
-    def __init__(self, overlap: bool = True) -> None:
-        self.overlap = overlap
-        self.parallel = 2 if overlap else 1
-        self.queue: deque = deque()    # (task, progress): submitted, not simulated yet
-        self.pending: deque = deque()  # _Pending, oldest first; only the oldest may be being written
-        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="simgen-write") if overlap else None
-
-    def submit(self, task: BatchTask, progress) -> None:
-        self.queue.append((task, progress))
-
-    def in_flight(self) -> int:
-        return len(self.queue) + len(self.pending)
-
-    def _start_write(self) -> None:
-        head = self.pending[0] if self.pending else None
-        if head is not None and head.future is None and head.error is None:
-            head.future = self._pool.submit(write_batch, head.simulated)
-            head.simulated = None
-
-    def next_result(self):
-        if self._pool is None:
-            task, progress = self.queue.popleft()
-            return task, run_batch(task, progress=progress)
-        self._start_write()
-        while self.queue and len(self.pending) < self.parallel and not any(p.error for p in self.pending):
-            task, progress = self.queue.popleft()
-            try:
-                simulated = simulate_batch_task(task, progress=progress)
-            except Exception as exc:
-                if not self.pending:
-                    raise
-                self.pending.append(_Pending(task, error=exc))  # raised in order, after the batch being written
-                break
-            self.pending.append(_Pending(task, simulated=simulated))
-            self._start_write()
-        head = self.pending[0]
-        if head.error is not None:
-            self.pending.popleft()
-            raise head.error
-        t0 = time.perf_counter()
-        try:
-            result = head.future.result()
-        finally:
-            if head.future.done():  # else (interrupted while waiting) drain() waits for it
-                self.pending.popleft()
-        waited = time.perf_counter() - t0  # the part of this batch's write the simulation meanwhile did not hide
-        return head.task, {**result, "write_wait": min(waited, result["write_s"])}
-
-    def drain(self) -> None:
-        """Drop the batches not written yet and wait for the write in progress, if any."""
-        self.queue.clear()
-        pending, self.pending = list(self.pending), deque()
-        for p in pending:
-            if p.future is not None:
-                try:
-                    p.future.result()
-                except Exception:  # noqa: BLE001 - an error is already on its way up; the store stays consistent
-                    pass
+    def run(self, tasks, on_outcome, progress, budget_s):
+        results = []
+        for task in tasks:
+            deadline = None if budget_s is None else time.perf_counter() + budget_s
+            results.append(run_pool_task(task, progress=progress, on_outcome=on_outcome, deadline=deadline))
+        return results
 
     def close(self) -> None:
-        self.drain()
-        if self._pool is not None:
-            self._pool.shutdown(wait=True)
-            self._pool = None
+        pass
 
 
 def generate_dataset(spec, out: str | None = None, *, ray: str | None = None, max_sequences: int | None = None,
@@ -329,14 +262,12 @@ def generate_dataset(spec, out: str | None = None, *, ray: str | None = None, ma
                                      planned_fits=len(spec.shapes()), done_before=done_before, reconcile=rec)
                 if executor is None:
                     executor = _make_executor(ray, spec)
-                device = getattr(executor, "device", None)
-                _drive(spec, store, garment, body, pending, executor, report, progress, time_budget, t_start, say,
-                       device)
+                driver = _Driver(spec, store, garment, body, executor, report, progress, say,
+                                 getattr(executor, "device", None))
+                driver.run(pending, time_budget, t_start)
                 report.pending = seq_total - len(store.manifest["sequences"])
                 reports.append(report)
             finally:
-                if executor is not None and hasattr(executor, "drain"):
-                    executor.drain()  # no write of ours may run once the lock is released
                 store.release()
     finally:
         if executor is not None:
@@ -346,123 +277,103 @@ def generate_dataset(spec, out: str | None = None, *, ray: str | None = None, ma
 
 def _make_executor(ray: str | None, spec: DatasetSpec):
     if ray is None:
-        return _LocalExecutor(overlap=spec.overlap_writes)
+        return _LocalExecutor()
     from simgen.dataset.distributed import RayExecutor
 
     return RayExecutor(ray, spec)
 
 
-def _budget_rate(report: StoreReport, simultaneous: int) -> float:
-    """Cloth-frames per second that the time budget's estimate divides by, from the batches whose
-    results came back.
+class _Driver:
+    """Runs the pending jobs of one store in pools, round by round, and keeps the store's manifest
+    and the run's report (:func:`generate_dataset` step 4)."""
 
-    One simulation at a time (local): a batch costs the driver its simulation plus the part of its
-    write not hidden behind the next simulation. Not the wall clock: with the writes overlapped, the
-    result of batch k comes back after batch k+1 has simulated, so the wall clock then holds a batch
-    more than the results (a 2-batch run would read half its real rate). Several workers (Ray):
-    the throughput of all together, cloth-frames over wall time.
-    """
-    if simultaneous == 1:
-        busy = report.simulate_wall + report.write_wait
-        return report.cloth_frames / busy if busy > 0 else 0.0
-    return report.cloth_frames_per_second
+    def __init__(self, spec, store, garment, body, executor, report, progress, say, device) -> None:
+        self.spec, self.store, self.garment, self.body = spec, store, garment, body
+        self.executor, self.report, self.progress, self.say, self.device = executor, report, progress, say, device
+        self.retry: list[Job] = []
+        self.by_key: dict = {}
+        self.total = 0       # cloth-frames planned (retries add theirs)
+        self.done = 0        # cloth-frames simulated in the rounds that ended
+        self.shown = 0
 
+    def show(self, n: int) -> None:
+        if self.progress is not None:
+            self.shown = max(self.shown, min(n, self.total))
+            self.progress(self.shown, self.total)
 
-def _drive(spec, store, garment, body, pending, executor, report, progress, time_budget, t_start, say, device):
-    batches = deque((1, b) for b in _batches(spec, pending, 1))
-    total = [sum(job_cloth_frames(spec, b) for _, b in batches)]
-    done = [0]       # cloth-frames of the batches whose result came back
-    submitted = [0]  # cloth-frames of the batches submitted (a batch's progress starts there)
-    shown = [0]      # progress never goes back (a result may come back after the next batch simulated)
-    rate = [0.0]  # cloth-frames per second measured so far (0: unknown)
-    # Simulations running at the same time: the local executor simulates one batch at a time even
-    # while it writes another (parallel 2); Ray runs `parallel` batches at once.
-    simultaneous = getattr(executor, "simultaneous", executor.parallel)
-    t0 = time.perf_counter()
+    def run(self, pending: list[Job], time_budget: float | None, t_start: float) -> None:
+        spec, report = self.spec, self.report
+        queue = list(pending)
+        self.total = job_cloth_frames(spec, queue)
+        self.show(0)
+        t0 = time.perf_counter()
+        first = True
+        while queue:
+            left = None if time_budget is None else time_budget - (time.perf_counter() - t_start)
+            if left is not None and left <= 0:
+                report.stopped = f"time budget of {time_budget:g} s reached"
+                break
+            jobs = _next_round(queue, first)
+            first = False
+            self.by_key.update({j.key: j for j in jobs})
+            attempt = jobs[0].attempt
+            tasks = [BatchTask(location=self.store.loc.root if self.store.loc.is_local else self.store.loc.url(),
+                               spec=spec, garment=self.garment.name, jobs=part, attempt=attempt,
+                               device=self.device, body_hash=self.body.hash)
+                     for part in _split(jobs, self.executor.parallel)]
+            base = self.done
+            results = self.executor.run(tasks, self.record, lambda n: self.show(base + n), left)
+            not_done = [j for r in results for j in r["not_done"]]
+            for r in results:
+                report.slots = max(report.slots, r["slots"])
+                self.done += r["cloth_frames"]
+                report.cloth_frames += r["cloth_frames"]
+                report.simulate_wall += r["wall"]
+                report.step_wall += r["step_s"]
+                report.write_wall += r["write_s"]
+                report.write_wait += r["write_wait"]
+                if attempt > 1:
+                    report.retry_cloth_frames += r["cloth_frames"]
+                    report.retry_simulate_wall += r["wall"]
+            report.wall = time.perf_counter() - t0
+            self.total -= job_cloth_frames(spec, not_done) - sum(r["abandoned_cloth_frames"] for r in results)
+            self.store.save_manifest()
+            self.show(self.done)
+            error = next((r["error"] for r in results if r["error"]), None)
+            if error:
+                raise StoreWriteError(error)
+            if not_done:
+                report.stopped = f"time budget of {time_budget:g} s reached"
+                break
+            queue += self.retry
+            self.total += job_cloth_frames(spec, self.retry)
+            self.retry = []
 
-    def show(n):
-        if progress is not None:
-            shown[0] = max(shown[0], min(n, total[0]))
-            progress(shown[0], total[0])
-
-    show(0)
-
-    def batch_progress(base):
-        def cb(n):
-            show(base + n)
-        return cb
-
-    while batches or executor.in_flight():
-        while batches and executor.in_flight() < executor.parallel:
-            attempt, jobs = batches[0]
-            frames = job_cloth_frames(spec, jobs)
-            if time_budget is not None and (report.cloth_frames or executor.in_flight()):
-                elapsed = time.perf_counter() - t_start
-                # rate is the throughput of all workers together; one batch runs on one of them. Locally
-                # (one simulation at a time) that is frames / rate, writes included; with the overlap
-                # the last batch's write may still run past the estimate (drained before returning).
-                est = frames * simultaneous / rate[0] if rate[0] > 0 else 0.0
-                if elapsed + est > time_budget:
-                    report.stopped = f"time budget of {time_budget:g} s reached"
-                    batches.clear()
-                    break
-            batches.popleft()
-            task = BatchTask(location=store.loc.root if store.loc.is_local else store.loc.url(), spec=spec,
-                             garment=garment.name, jobs=jobs, attempt=attempt, device=device, body_hash=body.hash)
-            executor.submit(task, batch_progress(submitted[0]))
-            submitted[0] += frames
-        if not executor.in_flight():
-            break
-        task, result = executor.next_result()
-        done[0] += job_cloth_frames(spec, task.jobs)
-        report.cloth_frames += result["cloth_frames"]
-        report.simulate_wall += result["wall"]
-        report.step_wall += result.get("step_s", 0.0)
-        report.write_wall += result.get("write_s", 0.0)
-        report.write_wait += result.get("write_wait", result.get("write_s", 0.0))
-        if task.attempt > 1:
-            report.retry_cloth_frames += result["cloth_frames"]
-            report.retry_simulate_wall += result["wall"]
-        report.wall = time.perf_counter() - t0
-        rate[0] = _budget_rate(report, simultaneous)
-        retry, waiting = [], []
-        by_key = {f"{j.kind}:{j.id}": j for j in task.jobs}
-        for o in result["outcomes"]:
-            if o.get("waiting"):
-                # Not simulated for its own sake (the template of its batch failed): again, same attempt.
-                waiting.append(by_key[f"{o['kind']}:{o['id']}"])
-                continue
-            store.record(o)
-            if o["ok"]:
-                report.failed.pop(f"{o['kind']}:{o['id']}", None)
-                if o["kind"] == "sequence" and not o.get("reused"):
-                    report.written += 1
-            else:
-                job = by_key[f"{o['kind']}:{o['id']}"]
-                if job.attempt < spec.max_attempts:
-                    say(f"{job.key} failed on attempt {job.attempt} ({o['message']}); retrying with "
-                        f"{spec.substeps * 2 ** job.attempt} substeps")
-                    retry.append(Job(**{**job.__dict__, "attempt": job.attempt + 1}))
-                    report.retried += 1
-                else:
-                    report.failed[job.key] = o["message"]
-        if "template:template" in report.failed:
-            for job in waiting:
+    def record(self, o: dict) -> None:
+        """Enter one outcome into the manifest and the report; a failed job with attempts left is
+        queued for a later round with the substep halved."""
+        spec, report, store = self.spec, self.report, self.store
+        job = self.by_key[f"{o['kind']}:{o['id']}"]
+        if o.get("waiting"):
+            # Not simulated for its own sake (the template failed in its pool): again, same attempt,
+            # unless the template has failed for good.
+            if "template:template" in report.failed:
                 report.failed[job.key] = "the template relaxation failed"
                 store.record({"ok": False, "kind": job.kind, "id": job.id, "attempt": job.attempt,
                               "message": "the template relaxation failed"})
-            waiting = []
+            else:
+                self.retry.append(job)
+            return
+        store.record(o)
+        if o["ok"]:
+            report.failed.pop(job.key, None)
+            if o["kind"] == "sequence" and not o.get("reused"):
+                report.written += 1
+        elif job.attempt < spec.max_attempts:
+            self.say(f"{job.key} failed on attempt {job.attempt} ({o['message']}); retrying with "
+                     f"{spec.substeps * 2 ** job.attempt} substeps")
+            self.retry.append(Job(**{**job.__dict__, "attempt": job.attempt + 1}))
+            report.retried += 1
+        else:
+            report.failed[job.key] = o["message"]
         store.save_manifest()
-        show(done[0])
-        if result["error"]:
-            raise StoreWriteError(result["error"])
-        # The template's retry runs next, alone; the fits waiting for it follow at their own attempt.
-        for job in (j for j in retry if j.kind == "template"):
-            batches.appendleft((job.attempt, [job]))
-            total[0] += job_cloth_frames(spec, [job])
-        retry = [j for j in retry if j.kind != "template"] + waiting
-        for attempt in sorted({j.attempt for j in retry}):
-            group = [j for j in retry if j.attempt == attempt]  # a batch shares its substeps
-            for b in _batches(spec, group, attempt):
-                batches.append((attempt, b))
-                total[0] += job_cloth_frames(spec, b)

@@ -62,10 +62,11 @@ Layout (every table and field optional except ``garment.names``)::
     boundary = "boundary"                     # "boundary" (along the loops) | "free" | "fixed"
 
     [execution]
-    batch_size = 16                           # sequences per batched solver call
+    batch_size = 0                            # slots of the simulation pool (jobs simulated at once);
+                                              # 0: from the GPU's free memory, at most 128 (4 on a CPU)
     max_attempts = 3                          # tries per job; each retry halves the substep
     chunk_frames = 32                         # frames per Zarr chunk
-    overlap_writes = true                     # local runs: write batch k while batch k+1 simulates
+    overlap_writes = true                     # write each finished job in the background while the pool steps
     retry_strain_outliers = true              # a sequence with a triangle past the check's strain limit is
                                               # simulated again with the substep halved (max_attempts)
 
@@ -216,7 +217,7 @@ class DatasetSpec:
     store_rest_frames: bool = True
     smoothing: dict = field(default_factory=lambda: {"method": "taubin", "iterations": 10, "lambda": 0.5,
                                                      "mu": -0.53, "boundary": "boundary"})
-    batch_size: int = 16
+    batch_size: int = 0
     max_attempts: int = 3
     chunk_frames: int = 32
     overlap_writes: bool = True
@@ -672,7 +673,7 @@ def parse_spec(doc: dict, *, source: str = "<dict>", base_dir: str | Path = ".",
         raise sm.err("mu", f"must be below -lambda for Taubin smoothing (no shrinkage), got {spec.smoothing['mu']!r}")
 
     e = _Reader(source, _table(source, doc, "execution"), "execution.")
-    spec.batch_size = e.get("batch_size", 16, int, low=1)
+    spec.batch_size = e.get("batch_size", 0, int, low=0)
     spec.max_attempts = e.get("max_attempts", 3, int, low=1)
     spec.chunk_frames = e.get("chunk_frames", 32, int, low=1)
     spec.overlap_writes = e.get("overlap_writes", True, bool)
@@ -696,7 +697,7 @@ def _validate_scalars(spec: DatasetSpec, where: str) -> None:
     dev = spec.device
     if not (dev in ("auto", "cpu", "cuda") or re.fullmatch(r"cuda:\d+", dev or "")):
         raise InputError(f"{where}: field 'solver.device' must be auto, cpu, cuda or cuda:N, got {dev!r}")
-    for name, low in (("batch_size", 1), ("max_frames", 0)):
+    for name, low in (("batch_size", 0), ("max_frames", 0)):
         v = getattr(spec, name)
         if isinstance(v, bool) or not isinstance(v, int) or v < low:
             raise InputError(f"{where}: field '{name}' must be an integer >= {low}, got {v!r}")

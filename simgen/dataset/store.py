@@ -174,7 +174,7 @@ class DatasetStore:
         return node_id in self.manifest["fits" if kind == "fit" else "sequences"]
 
     def record(self, outcome: dict) -> None:
-        """Enter one job outcome (see :func:`simgen.dataset.execute.run_batch`) into the manifest (not saved)."""
+        """Enter one job outcome (see :func:`simgen.dataset.execute.run_pool_task`) into the manifest (not saved)."""
         kind, node_id = outcome["kind"], outcome["id"]
         key = f"{kind}:{node_id}"
         if outcome["ok"]:

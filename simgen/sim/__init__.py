@@ -7,6 +7,7 @@
     solver.step(state, state, body, dt)     # body: a BodyCollider or None
     result = simulate("tshirt", body_model, "walk", betas, SimulationConfig())  # garment on a moving body
     results = simulate_batch("tshirt", body_model, [SimulationJob("walk", betas), ...])  # N in one system
+    pool = SimulationPool("tshirt", body_model, 64, config, fps=30.0)   # N slots that take jobs as they free up
 """
 
 import importlib
@@ -23,6 +24,7 @@ _EXPORTS = {
     "simgen.sim.solver": ("ImplicitSolver", "SolverDivergedError"),
     "simgen.sim.driver": ("FRAME_STAT_KEYS", "SimulationFailure", "SimulationJob", "SimulationResult", "simulate",
                           "simulate_batch"),
+    "simgen.sim.pool": ("SimulationPool",),
 }
 _LAZY = {name: module for module, names in _EXPORTS.items() for name in names}
 

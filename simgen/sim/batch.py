@@ -1,14 +1,13 @@
-"""Setup of a batched simulation: the inputs resolved and checked, one cloth model instance per job,
-the solver, the posed body and its collider, and the garment placed on the template body.
+"""Setup of a batched simulation: the inputs resolved and checked, one cloth model instance per
+slot, the solver, the posed body and its collider, and where each job's garment starts.
 
 :func:`setup_batch` returns a :class:`BatchSetup`, what :class:`simgen.sim.frame_runner.FrameRunner`
-steps and :class:`simgen.sim.recorder.Recorder` records; :func:`simgen.sim.simulate_batch` composes
-them.
+steps, :class:`simgen.sim.recorder.JobRecorder` records and :class:`simgen.sim.pool.SimulationPool`
+fills with jobs.
 """
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -20,10 +19,10 @@ from simgen.sim.collider import BodyCollider
 from simgen.sim.config import SimulationConfig
 from simgen.sim.frame_stats import FrameStats
 from simgen.sim.model import ClothModel, ClothState
-from simgen.sim.protocol import ProtocolSchedule
 from simgen.sim.solver import ImplicitSolver
 
-__all__ = ["SimulationJob", "BatchSetup", "setup_batch"]
+__all__ = ["SimulationJob", "BatchSetup", "setup_batch", "check_job", "resolve_clip", "resolve_inputs", "job_material",
+           "frame_rate"]
 
 
 @dataclass(frozen=True)
@@ -45,27 +44,22 @@ class SimulationJob:
 
 @dataclass
 class BatchSetup:
-    """Everything a batched simulation of N jobs holds for its whole run.
+    """The device side of a batched simulation of N slots, held for its whole run.
 
-    config: the :class:`SimulationConfig`; garment, body: the resolved inputs; clips, keys: one per
-    job; fps [1/s]; num_out: output frames per job; betas (N, nb): target shapes (zero-padded to
-    the body's nb >= 1 slots; target_betas keeps each job's own length); materials: one per job;
-    model: the :class:`ClothModel` of N instances; state: its :class:`ClothState`, the garment
-    placed on the template body; solver: the :class:`ImplicitSolver`; wbody: the posed
-    :class:`simgen.body.warp_lbs.WarpBody` (N instances); collider: its :class:`BodyCollider`;
-    stats: the :class:`FrameStats` probe; initial: its rows at the start (template vertices found
-    inside the template body are projected out); schedule: the :class:`ProtocolSchedule`.
+    config: the :class:`SimulationConfig`; garment, body: the resolved inputs; fps [1/s]: output
+    frame rate of every job; materials: one per slot; model: the :class:`ClothModel` of N
+    instances; state: its :class:`ClothState`; solver: the :class:`ImplicitSolver`; wbody: the
+    posed :class:`simgen.body.warp_lbs.WarpBody` (N instances); collider: its
+    :class:`BodyCollider`; stats: the :class:`FrameStats` probe; start_positions [m] (V, 3)
+    float64: where every job's garment starts, the template placed on the template body at rest
+    with no root translation (vertices found inside it projected out; a job adds its clip's
+    first-frame translation); initial_inside: how many template vertices were found inside.
     """
 
     config: SimulationConfig
     garment: object
     body: object
-    clips: list
-    keys: list[str]
     fps: float
-    num_out: list[int]
-    target_betas: list[np.ndarray]
-    betas: np.ndarray
     materials: list[Material]
     model: ClothModel
     state: ClothState
@@ -73,13 +67,13 @@ class BatchSetup:
     wbody: object
     collider: BodyCollider
     stats: FrameStats
-    initial: list[dict]
-    schedule: ProtocolSchedule
+    start_positions: np.ndarray
+    initial_inside: int
     device: object
 
     @property
     def num_instances(self) -> int:
-        return len(self.keys)
+        return len(self.materials)
 
     @property
     def substeps(self) -> int:
@@ -104,35 +98,47 @@ def _resolve(kind: str, value, loader, cls):
     return value
 
 
-def _resolve_inputs(garment, body, jobs, config):
-    """Check the jobs and the config; load body, garment and clips given by name (each clip name once)."""
+def check_job(job, i=0) -> None:
+    """InputError unless ``job`` (the i-th) is a :class:`SimulationJob` with a valid frame count."""
+    if not isinstance(job, SimulationJob):
+        raise InputError(f"job {i} must be a SimulationJob, got {type(job).__name__}")
+    f = job.frames
+    if f is not None and (isinstance(f, bool) or not isinstance(f, (int, np.integer)) or f < 1):
+        raise InputError(f"frames must be an integer >= 1, got {f!r}")
+
+
+def resolve_clip(clip, cache: dict | None = None):
+    """A :class:`MotionClip`, or a library motion name loaded (once per name with ``cache``)."""
+    from simgen.motion.clip import MotionClip
+    from simgen.motion.library import load_motion
+
+    cache = {} if cache is None else cache
+    return _resolve("clip", clip, lambda name: cache.setdefault(name, load_motion(name)), MotionClip)
+
+
+def resolve_inputs(garment, body, config):
+    """Check the config; load body and garment given by name. Returns (garment, body, config)."""
     from simgen import body as body_pkg
     from simgen.body.model import BodyModel
     from simgen.garment.garment import Garment
     from simgen.garment.library import load_garment
-    from simgen.motion.clip import MotionClip
-    from simgen.motion.library import load_motion
 
+    config = config if config is not None else SimulationConfig()
     if not isinstance(config, SimulationConfig):
         raise InputError(f"config must be a SimulationConfig, got {type(config).__name__}")
-    jobs = list(jobs)
-    if not jobs:
-        raise InputError("simulate_batch needs at least one SimulationJob")
-    for i, job in enumerate(jobs):
-        if not isinstance(job, SimulationJob):
-            raise InputError(f"job {i} must be a SimulationJob, got {type(job).__name__}")
-        f = job.frames
-        if f is not None and (isinstance(f, bool) or not isinstance(f, (int, np.integer)) or f < 1):
-            raise InputError(f"frames must be an integer >= 1, got {f!r}")
     body = _resolve("body", body, body_pkg.load, BodyModel)
     garment = _resolve("garment", garment, lambda name: load_garment(name, body=body), Garment)
-    by_name: dict = {}
-    clips = [_resolve("clip", j.clip, lambda name: by_name.setdefault(name, load_motion(name)), MotionClip)
-             for j in jobs]
-    return garment, body, jobs, clips
+    return garment, body, config
 
 
-def _frame_rate(config: SimulationConfig, clips) -> float:
+def job_material(config: SimulationConfig, garment, job: SimulationJob) -> Material:
+    """The material a job simulates: its own (with the config's overrides) or the config's."""
+    if job.material is None:
+        return config.resolve_material(garment)
+    return replace(get_material(job.material), **config.material_overrides)
+
+
+def frame_rate(config: SimulationConfig, clips) -> float:
     rates = sorted({float(c.fps) for c in clips})
     if config.fps is None and len(rates) > 1:
         raise InputError(f"the clips of one batch have different frame rates ({rates}); set SimulationConfig.fps")
@@ -149,54 +155,40 @@ def _build_model(garment, body, materials, device) -> ClothModel:
     return parts[0] if len(parts) == 1 else ClothModel.concatenate(parts)
 
 
-def setup_batch(garment, body, jobs, config: SimulationConfig | None = None) -> BatchSetup:
-    """Resolve and check the inputs, build the batch's model, solver, body and collider, and place
-    each garment copy on the template body at rest at its clip's first-frame translation.
+def setup_batch(garment, body, materials: list[Material], fps: float, config: SimulationConfig) -> BatchSetup:
+    """Build the device side of N = len(materials) slots: model, solver, body and collider, and
+    where each job's garment starts (the template on the template body at rest; vertices found
+    inside it are projected out, once for all jobs).
 
-    garment, body, jobs, config: as :func:`simgen.sim.simulate_batch`. Raises InputError for bad
-    input before anything is allocated on the device.
+    garment, body: resolved (:func:`resolve_inputs`); fps [1/s]: output frame rate.
     """
     from simgen.body.warp_lbs import WarpBody
 
-    cfg = config if config is not None else SimulationConfig()
-    garment, body, jobs, clips = _resolve_inputs(garment, body, jobs, cfg)
-    fps = _frame_rate(cfg, clips)
-    num_out = [int(math.floor(c.duration * fps + 1e-9)) + 1 if j.frames is None else int(j.frames)
-               for j, c in zip(jobs, clips)]
-    target_betas = [np.zeros(body.num_betas) if j.betas is None else body.check_betas(j.betas).reshape(-1)
-                    for j in jobs]
-    N, nb = len(jobs), max(body.num_betas, 1)
-    betas = np.zeros((N, nb))
-    for i, b in enumerate(target_betas):
-        betas[i, :len(b)] = b
-    materials = [cfg.resolve_material(garment) if j.material is None
-                 else replace(get_material(j.material), **cfg.material_overrides) for j in jobs]
-    schedule = ProtocolSchedule(clips, betas, fps, cfg.substeps, relax_frames=cfg.relax_frames,
-                                ramp_frames=cfg.ramp_frames, rest_frames=cfg.rest_frames,
-                                animate_frames=max(num_out))
+    cfg = config
+    N = len(materials)
     device = wp.get_device(cfg.device)
     model = _build_model(garment, body, materials, device)
     solver = ImplicitSolver(model, cfg.solver)
     wbody = WarpBody(body, max_batch=N, device=device)
-    # Template body at rest, translated to each clip's start; each garment rigidly with it.
+    # Template body at rest, no root translation; each job moves both by its clip's first translation.
     wbody.set_shape(np.zeros((1, body.num_betas)), num_instances=N)
-    quats, trans = schedule.start_pose()
-    wbody.pose_from_quats(wp.array(np.ascontiguousarray(quats), dtype=wp.quat, device=device),
-                          wp.array(trans.astype(np.float32), dtype=wp.vec3, device=device))
+    identity = np.zeros((N, 24, 4), dtype=np.float32)
+    identity[..., 3] = 1.0                                                              # xyzw
+    wbody.pose_from_quats(wp.array(identity, dtype=wp.quat, device=device),
+                          wp.zeros(N, dtype=wp.vec3, device=device))
     collider = BodyCollider.from_warp_body(wbody, device=device)
     state = model.state()
-    x0 = (np.asarray(garment.vertices, dtype=np.float64)[None] + schedule.trans0[:, None]).astype(np.float32)
-    state.positions.assign(x0.reshape(-1, 3))
+    x0 = np.tile(np.asarray(garment.vertices, dtype=np.float32), (N, 1))
+    state.positions.assign(x0)
     state.velocities.zero_()
     stats = FrameStats(model, collider, wbody, garment, body, contact=cfg.solver.contact)
-    initial = stats.measure(state.positions, np.zeros((N, nb)))
-    if any(r["inside_count"] for r in initial):
+    inside = stats.measure(state.positions, np.zeros((N, max(body.num_betas, 1))))[0]["inside_count"]
+    if inside:
         # The garment must never start inside the body: project what a bad template left inside.
         collider.project(model, state, offset=cfg.solver.projection_offset,
                          query_distance=cfg.solver.contact.query_distance,
                          pinch_distance=cfg.solver.contact.pinch_distance)
-    return BatchSetup(config=cfg, garment=garment, body=body, clips=clips,
-                      keys=[str(j.key) if j.key is not None else str(i) for i, j in enumerate(jobs)],
-                      fps=fps, num_out=num_out, target_betas=target_betas, betas=betas, materials=materials,
+    start = state.positions.numpy()[:garment.num_vertices].astype(np.float64)
+    return BatchSetup(config=cfg, garment=garment, body=body, fps=float(fps), materials=list(materials),
                       model=model, state=state, solver=solver, wbody=wbody, collider=collider, stats=stats,
-                      initial=initial, schedule=schedule, device=device)
+                      start_positions=start, initial_inside=int(inside), device=device)

@@ -23,30 +23,32 @@ solver takes one step (a retried frame splits it further, with the body moving l
 the body back onto it after every step, so output frames are free of penetration except where the
 posed body intersects itself.
 
-A batched simulation is four parts, composed by :func:`simulate_batch` (and driven the same way by
-the dataset generator through it):
+A batched simulation is a :class:`simgen.sim.pool.SimulationPool` of N slots (the dataset generator
+keeps one running and feeds it jobs as slots free up; :func:`simulate_batch` gives it one slot per
+job), made of four parts:
 
-- :func:`simgen.sim.batch.setup_batch`: inputs, the cloth model of N instances, solver, posed body,
-  collider, the garment placed on the template body (:class:`~simgen.sim.batch.BatchSetup`);
-- :class:`simgen.sim.protocol.ProtocolSchedule`: the frames in order and the body's targets at each
+- :func:`simgen.sim.batch.setup_batch`: the cloth model of N instances, solver, posed body,
+  collider, and where each job's garment starts (:class:`~simgen.sim.batch.BatchSetup`);
+- :class:`simgen.sim.protocol.JobSchedule`: a job's frames in order and the body's targets at each
   substep;
 - :class:`simgen.sim.frame_runner.FrameRunner`: one frame of substeps (CUDA graphs), the retry of
-  failed instances at finer steps and the freezing of diverged ones;
-- :class:`simgen.sim.recorder.Recorder`: per-frame statistics
+  failed instances at finer steps, the freezing of diverged ones, and the slots that start a job;
+- :class:`simgen.sim.recorder.JobRecorder`: a job's per-frame statistics
   (:class:`simgen.sim.frame_stats.FrameStats`: penetration, body self-intersections, whether the
-  garment is on the body) and positions, and the results.
+  garment is on the body) and positions, and its result.
 """
 
 from __future__ import annotations
 
-import time
+from dataclasses import replace
 
+from simgen.errors import InputError
+from simgen.sim.batch import SimulationJob, check_job, frame_rate, job_material, resolve_clip, resolve_inputs
 from simgen.sim.config import SimulationConfig
-from simgen.sim.frame_runner import FrameRunner
 from simgen.sim.frame_stats import FRAME_STAT_KEYS
+from simgen.sim.pool import SimulationPool
 from simgen.sim.protocol import PHASES
-from simgen.sim.recorder import Recorder, SimulationFailure, SimulationResult
-from simgen.sim.batch import SimulationJob, setup_batch
+from simgen.sim.recorder import SimulationFailure, SimulationResult
 
 __all__ = ["SimulationConfig", "SimulationResult", "SimulationJob", "SimulationFailure", "simulate",
            "simulate_batch", "PHASES", "FRAME_STAT_KEYS"]
@@ -82,10 +84,10 @@ def simulate_batch(garment, body, jobs, config: SimulationConfig | None = None, 
 
     Every :class:`SimulationJob` is its own instance (garment copy, material, body shape, motion) of
     one :class:`ClothModel` with N instances and one posed body mesh each; all step together
-    through the start protocol and the animation (:func:`simulate` describes both).
-    Clips of unequal length share the batch: it runs to the longest job, a shorter clip holds its
-    last pose meanwhile, and each result is cut to its own frames. All clips must share one frame
-    rate (config.fps, or the clips' own when it is None).
+    through the start protocol and the animation (:func:`simulate` describes both): a
+    :class:`simgen.sim.pool.SimulationPool` with one slot per job. A job that ends before the
+    longest (a shorter clip) leaves its slot idle. All clips must share one frame rate (config.fps,
+    or the clips' own when it is None).
 
     On CUDA each frame's substeps (body posing, refits, solver) replay as one captured CUDA graph
     (``config.cuda_graph``); the CPU runs the same sequence uncaptured. Instances that fail the
@@ -96,16 +98,25 @@ def simulate_batch(garment, body, jobs, config: SimulationConfig | None = None, 
     progress: optional callable(done, total, phase) after each batch frame (protocol included).
     Returns one :class:`SimulationResult` or :class:`SimulationFailure` per job, in order.
     """
-    setup = setup_batch(garment, body, jobs, config)
-    runner, recorder = FrameRunner(setup), Recorder(setup)
-    frames = setup.schedule.frames
-    for done, (phase, k) in enumerate(frames):
-        t_frame = time.perf_counter()
-        setup.solver.reset_stats()
-        stepped = setup.schedule.steps(phase, k) and not runner.all_failed
-        if stepped:
-            runner.run(phase, k)
-        recorder.record(phase, k, runner.failures, runner.betas_now, runner.step_time if stepped else 0.0, t_frame)
+    garment, body, cfg = resolve_inputs(garment, body, config)
+    jobs = list(jobs)
+    if not jobs:
+        raise InputError("simulate_batch needs at least one SimulationJob")
+    cache: dict = {}
+    for i, job in enumerate(jobs):
+        check_job(job, i)
+    clips = [resolve_clip(j.clip, cache) for j in jobs]
+    pool = SimulationPool(garment, body, len(jobs), cfg, fps=frame_rate(cfg, clips),
+                          materials=[job_material(cfg, garment, j) for j in jobs])
+    for i, (job, clip) in enumerate(zip(jobs, clips)):
+        pool.submit(replace(job, clip=clip), tag=i)
+    pool.fill()
+    total = pool.next_frames()
+    results: list = [None] * len(jobs)
+    for done in range(1, total + 1):
+        phase = pool.current_phase()
+        for i, res in pool.step():
+            results[i] = res
         if progress is not None:
-            progress(done + 1, len(frames), phase)
-    return recorder.results(runner.failures)
+            progress(done, total, phase)
+    return results

@@ -1,5 +1,5 @@
-"""One frame of a batched simulation for every live instance: the substeps, their CUDA graphs, and
-the retry and freeze policy.
+"""One frame of a batched simulation for every active slot: the substeps, their CUDA graphs, the
+retry and freeze policy, and the slots that start and end jobs between frames.
 
 A frame is ``substeps`` S solver steps. Each poses the body on the device from the frame's joint
 rotations at the substep's end (:meth:`WarpBody.pose_from_quats`, the shape too while it changes),
@@ -15,6 +15,11 @@ held where they got (:meth:`FrameRunner._retry`), so no instance's result depend
 failures. An instance still not finite after the last level is frozen (:meth:`FrameRunner._freeze`:
 back at the frame start, pinned, its body switched off) and recorded in ``failures``; one that is
 finite but still fails the guard is kept and counted unresolved.
+
+A slot is active (its job steps) or idle: pinned where it is, still and without a body, so it
+takes no part in the physics (its vertices still cost the kernels their work). :meth:`FrameRunner.place`
+starts a job in an idle slot before the next frame: its garment at its start positions, and the
+body of every slot posed where it is, the new slot's at the job's start pose, with no velocity.
 """
 
 from __future__ import annotations
@@ -52,23 +57,24 @@ def _select_instances(src_x: wp.array(dtype=wp.vec3), src_v: wp.array(dtype=wp.v
 
 
 class FrameRunner:
-    """Steps a :class:`BatchSetup` one frame at a time.
+    """Steps the active slots of a :class:`BatchSetup` one frame at a time.
 
-    ``failures``: instance -> (phase, frame, message) of the instances frozen so far; a frozen
-    instance takes no further part. ``step_time`` [s]: the last frame's stepping (posing, refits,
-    solver, retries), synchronised.
+    Every slot starts idle: pinned where it is, with no body (it takes no part in the physics).
+    :meth:`place` starts a job in a slot at the next frame; :meth:`release` makes it idle again.
+    ``failures``: slot -> (phase, frame, message) of the slots frozen (and so made idle) since the
+    caller last took them (:meth:`take_failures`). ``step_time`` [s]: the last frame's stepping
+    (posing, refits, solver, retries), synchronised.
     """
 
     def __init__(self, setup: BatchSetup) -> None:
         self.setup = setup
         cfg, dev = setup.config, setup.device
-        S, N, nb = setup.substeps, setup.num_instances, setup.betas.shape[1]
+        S, N, nb = setup.substeps, setup.num_instances, max(setup.body.num_betas, 1)
         self.max_level = cfg.solver.max_retries if cfg.solver.guard else 0
         self.failures: dict[int, tuple[str, int, str]] = {}
         self.step_time = 0.0
         self._graphs: dict = {}
         self._frames_run = 0
-        self._betas_now = np.zeros((N, nb))
         model = setup.model
         self._frame_start = model.state()
         self._accepted = model.state()
@@ -79,41 +85,124 @@ class FrameRunner:
         self._trans = wp.zeros((S, N), dtype=wp.vec3, device=dev)
         self._betas = wp.zeros((S, N, nb), dtype=wp.float32, device=dev)
         self._rows = [(self._quats[s], self._trans[s], self._betas[s]) for s in range(S)]
+        # Where each slot's body is now (host): joint rotations xyzw, root translation [m], shape.
+        self._q_now = np.zeros((N, 24, 4), dtype=np.float32)
+        self._q_now[..., 3] = 1.0
+        self._tr_now = np.zeros((N, 3), dtype=np.float32)
+        self._betas_now = np.zeros((N, nb))
+        # The slots' own pins and bodies, restored when a job starts in one.
+        self._pinned = model.vertex_pinned.numpy().copy()
+        self._mesh_ids = setup.collider.mesh_ids.numpy().copy()
+        self.active = np.zeros(N, dtype=bool)
+        self._placed: dict[int, tuple] = {}
+        self._idle(range(N))
 
     @property
     def betas_now(self) -> np.ndarray:
-        """Each instance's body shape at the end of the last frame, (N, nb)."""
+        """Each slot's body shape at the end of the last frame, (N, nb)."""
         return self._betas_now
 
     @property
-    def all_failed(self) -> bool:
-        return len(self.failures) == self.setup.num_instances
+    def pose_now(self) -> tuple[np.ndarray, np.ndarray]:
+        """Each slot's joint rotations xyzw (N, 24, 4) and root translation [m] (N, 3) now: the
+        targets of an idle slot, which keep its body where it is."""
+        return self._q_now, self._tr_now
 
-    def run(self, phase: str, k: int) -> None:
-        """Step frame (phase, k) of the schedule for every live instance (module doc: retries, freezing)."""
+    def place(self, slot: int, quats: np.ndarray, trans: np.ndarray, positions: np.ndarray) -> None:
+        """Start a job in idle ``slot`` at the next :meth:`run`: its body at rest shape in pose
+        quats xyzw (24, 4) at root translation trans [m] (3,), its garment at positions [m] (V, 3)
+        at rest, its pins and body back on."""
+        if self.active[slot]:
+            raise ValueError(f"slot {slot} is busy")
+        self._placed[slot] = (quats, trans, positions)
+        self.active[slot] = True
+
+    def release(self, slots) -> None:
+        """Make ``slots`` idle: pinned where they are, still, with no body."""
+        slots = list(slots)
+        self.active[slots] = False
+        self._idle(slots)
+
+    def take_failures(self) -> dict:
+        """The slots frozen since the last call: slot -> (phase, frame, message)."""
+        out, self.failures = self.failures, {}
+        return out
+
+    def run(self, quats: np.ndarray, trans: np.ndarray, betas: np.ndarray, where: list) -> None:
+        """Step one frame of every active slot (module doc: retries, freezing).
+
+        quats xyzw (S, N, 24, 4), trans [m] (S, N, 3), betas (S, N, nb): the body targets at the
+        substeps' ends (an idle slot's rows hold :attr:`pose_now` and :attr:`betas_now`); where:
+        (phase, k) of each slot's frame (None for idle), what a failure records.
+        """
         s = self.setup
-        q, tr, bt = s.schedule.body_targets(phase, k)
-        self._quats.assign(np.ascontiguousarray(q, dtype=np.float32))
-        self._trans.assign(np.ascontiguousarray(tr, dtype=np.float32))
-        # Re-shape only while the betas change (ramp), never for a shapeless body model.
-        reshape = s.body.num_betas > 0 and not np.all(bt == self._betas_now[None])
+        self._start_placed()
+        self._quats.assign(np.ascontiguousarray(quats, dtype=np.float32))
+        self._trans.assign(np.ascontiguousarray(trans, dtype=np.float32))
+        # Re-shape only while some shape changes (a ramp), never for a shapeless body model.
+        reshape = s.body.num_betas > 0 and not np.all(betas == self._betas_now[None])
         if reshape:
-            self._betas.assign(np.ascontiguousarray(bt, dtype=np.float32))
+            self._betas.assign(np.ascontiguousarray(betas, dtype=np.float32))
         wp.synchronize_device(s.device)
         t0 = time.perf_counter()
-        self._frame(reshape, phase, k, eager=self._frames_run == 0 or not s.use_graph)
+        self._frame(reshape, where, eager=self._frames_run == 0 or not s.use_graph)
         wp.synchronize_device(s.device)
         self.step_time = time.perf_counter() - t0
         self._frames_run += 1
-        self._betas_now = np.array(bt[-1])
+        self._q_now = np.array(quats[-1], dtype=np.float32)
+        self._tr_now = np.array(trans[-1], dtype=np.float32)
+        self._betas_now = np.array(betas[-1])
+
+    # -- slots --------------------------------------------------------------------------------------
+    def _idle(self, slots) -> None:
+        s = self.setup
+        model, state, collider = s.model, s.state, s.collider
+        starts = np.asarray(model.vertex_start)
+        pinned, ids, vel = model.vertex_pinned.numpy(), collider.mesh_ids.numpy(), state.velocities.numpy()
+        for i in slots:
+            pinned[starts[i]:starts[i + 1]] = 1
+            vel[starts[i]:starts[i + 1]] = 0.0
+            ids[i] = 0
+        model.vertex_pinned.assign(pinned)
+        collider.mesh_ids.assign(ids)
+        state.velocities.assign(vel)
+
+    def _start_placed(self) -> None:
+        """Put the jobs placed since the last frame into their slots: garment, pins, body (moved
+        there at rest, no velocity), and friction's lagged contacts of every slot taken again."""
+        if not self._placed:
+            return
+        s = self.setup
+        model, state, collider = s.model, s.state, s.collider
+        starts = np.asarray(model.vertex_start)
+        x, v = state.positions.numpy(), state.velocities.numpy()
+        pinned, ids = model.vertex_pinned.numpy(), collider.mesh_ids.numpy()
+        for i, (q, tr, pos) in self._placed.items():
+            a, b = starts[i], starts[i + 1]
+            x[a:b] = pos
+            v[a:b] = 0.0
+            pinned[a:b] = self._pinned[a:b]
+            ids[i] = self._mesh_ids[i]
+            self._q_now[i], self._tr_now[i], self._betas_now[i] = q, tr, 0.0
+        for arr, host in ((state.positions, x), (state.velocities, v), (model.vertex_pinned, pinned),
+                          (collider.mesh_ids, ids)):
+            arr.assign(host)
+        if s.body.num_betas > 0:
+            s.wbody.set_shape(self._betas_now)
+        dev = s.device
+        s.wbody.pose_from_quats(wp.array(self._q_now, dtype=wp.quat, device=dev),
+                                wp.array(self._tr_now, dtype=wp.vec3, device=dev))
+        collider.update()                  # a teleport: the other slots' bodies are posed where they are
+        s.solver.take_contacts(state, collider)
+        self._placed = {}
 
     # -- the frame and its retries ------------------------------------------------------------------
-    def _frame(self, reshape: bool, phase: str, k: int, eager: bool) -> None:
+    def _frame(self, reshape: bool, where: list, eager: bool) -> None:
         s = self.setup
         self._frame_start.assign(s.state)
         wp.copy(self._body_start, s.collider.points)
         bad = self._attempt(reshape, 0, eager)
-        failing = [i for i in range(s.num_instances) if bad[i] and i not in self.failures]
+        failing = [i for i in range(s.num_instances) if bad[i] and self.active[i]]
         level = 0
         while failing and level < self.max_level:
             level += 1
@@ -124,9 +213,9 @@ class FrameRunner:
             diverged = [i for i in failing if bad[i] & 1]
             s.solver.count_unresolved([i for i in failing if not bad[i] & 1])
             if diverged:
-                self._freeze(diverged, phase, k, f"the cloth step still produced non-finite positions after "
-                                                 f"{self.max_level} retries at up to {2 ** self.max_level} solver "
-                                                 f"steps per substep")
+                self._freeze(diverged, where, f"the cloth step still produced non-finite positions after "
+                                              f"{self.max_level} retries at up to {2 ** self.max_level} solver "
+                                              f"steps per substep")
         if level > 0:
             # Friction's lagged contacts at the frame's end for every instance (the retry took the
             # held instances' without their body).
@@ -195,23 +284,17 @@ class FrameRunner:
                           state.positions, state.velocities])
         return bad
 
-    def _freeze(self, instances: list, phase: str, k: int, message: str) -> None:
-        """Back to the frame start, pinned there with no body: the instances stop; their slots fail."""
+    def _freeze(self, instances: list, where: list, message: str) -> None:
+        """Back to the frame start, then idle: the slots stop; their jobs fail."""
         s = self.setup
-        model, state, collider = s.model, s.state, s.collider
+        model, state = s.model, s.state
         chosen = np.zeros(s.num_instances, dtype=np.int32)
         chosen[list(instances)] = 1
         self._held.assign(chosen)
         wp.launch(_select_instances, dim=model.num_vertices, device=s.device,
                   inputs=[self._frame_start.positions, self._frame_start.velocities, model.vertex_instance,
                           self._held, state.positions, state.velocities])
-        starts = np.asarray(model.vertex_start)
-        pinned, ids, vel = model.vertex_pinned.numpy(), collider.mesh_ids.numpy(), state.velocities.numpy()
         for i in instances:
+            phase, k = where[i]
             self.failures[i] = (phase, k, message)
-            pinned[starts[i]:starts[i + 1]] = 1
-            vel[starts[i]:starts[i + 1]] = 0.0
-            ids[i] = 0
-        model.vertex_pinned.assign(pinned)
-        collider.mesh_ids.assign(ids)
-        state.velocities.assign(vel)
+        self.release(instances)

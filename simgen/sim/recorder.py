@@ -1,6 +1,7 @@
 """The results of a batched simulation: :class:`SimulationResult` (positions, statistics and
-metadata of one job), :class:`SimulationFailure` (the slot of a job that diverged), and the
-:class:`Recorder` that collects them frame by frame.
+metadata of one job), :class:`SimulationFailure` (a job that diverged), :func:`measure_frame` (the
+statistics of every slot at a frame's end) and the :class:`JobRecorder` that collects one job's
+frames.
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ import numpy as np
 from simgen.sim.frame_stats import FRAME_STAT_KEYS, stack_stats
 from simgen.sim.batch import BatchSetup
 
-__all__ = ["SimulationResult", "SimulationFailure", "Recorder"]
+__all__ = ["SimulationResult", "SimulationFailure", "JobRecorder", "measure_frame"]
 
 
 @dataclass
@@ -93,106 +94,108 @@ class SimulationFailure:
     frame: int
 
 
-class Recorder:
-    """Collects every live instance's cloth positions and statistics frame by frame, and makes the
-    results.
+def measure_frame(setup: BatchSetup, betas: np.ndarray, step_time: float, t_frame: float) -> tuple:
+    """Measure every slot at the end of a frame.
 
-    Protocol frames go to ``protocol_positions`` / ``protocol_stats``, animation frames below each
-    job's own frame count to ``positions`` / ``stats`` (and the posed body with
-    ``config.record_body``).
+    betas (N, nb): each slot's body shape now; step_time [s]: the frame's stepping; t_frame [s]:
+    ``time.perf_counter()`` at the frame's start. Returns (rows, positions, body): one dict of
+    :data:`FRAME_STAT_KEYS` per slot, the cloth [m] (N*V, 3) float32, and the posed body [m]
+    (N, Vb, 3) with ``config.record_body`` (else None).
+    """
+    s = setup
+    rows = s.stats.measure(s.state.positions, betas)
+    st, per = s.solver.stats, s.solver.instance_stats
+    x = s.state.positions.numpy().astype(np.float32)
+    wall = time.perf_counter() - t_frame
+    for i, row in enumerate(rows):
+        row.update(depth_before_projection=float(per["max_penetration"][i]), retries=int(per["retries"][i]),
+                   unresolved=int(per["unresolved"][i]), newton_iterations=st["newton_iterations"],
+                   cg_iterations=st["cg_iterations"], step_time=step_time, wall_time=wall)
+    body = s.wbody.vertices.numpy() if s.config.record_body else None
+    return rows, x, body
+
+
+#: The solver's entries of a frame row that took no step (a clip's frame 0: the rest phase's end).
+_NO_STEP = dict(depth_before_projection=0.0, retries=0, unresolved=0, newton_iterations=0, cg_iterations=0,
+                step_time=0.0)
+
+
+class JobRecorder:
+    """Collects one job's cloth positions and statistics frame by frame, and makes its result.
+
+    Protocol frames go to ``protocol_positions`` / ``protocol_stats``, animation frames to
+    ``positions`` / ``stats`` (and the posed body with ``config.record_body``).
+
+    setup: the :class:`BatchSetup`; key: the job's label; clip: its MotionClip; num_out: its
+    output frames; betas (B',): its target shape; material: its Material.
     """
 
-    def __init__(self, setup: BatchSetup) -> None:
-        N = setup.num_instances
-        self.setup = setup
-        self._positions = [[] for _ in range(N)]
-        self._stats = [[] for _ in range(N)]
-        self._body = [[] for _ in range(N)]
-        self._proto_positions = [[] for _ in range(N)]
-        self._proto_stats = [[] for _ in range(N)]
+    def __init__(self, setup: BatchSetup, key: str, clip, num_out: int, betas: np.ndarray, material) -> None:
+        self.setup, self.key, self.clip, self.num_out = setup, key, clip, int(num_out)
+        self.betas, self.material = betas, material
+        self._positions: list = []
+        self._stats: list = []
+        self._body: list = []
+        self._proto_positions: list = []
+        self._proto_stats: list = []
         self._proto_phases: list[str] = []
         self._t_start = time.perf_counter()
-        self._frames = 0
+        self.share = 0.0   # [s] this job's share of the batch's wall time (each frame's over its active slots)
 
-    def record(self, phase: str, k: int, failures: dict, betas: np.ndarray, step_time: float,
-               t_frame: float) -> None:
-        """Measure and keep frame (phase, k) of every instance not in ``failures``.
-
-        betas (N, nb): each instance's body shape now; step_time [s]: the frame's stepping (0 if it
-        took no step); t_frame [s]: ``time.perf_counter()`` at the frame's start.
-        """
-        s = self.setup
-        rows = s.stats.measure(s.state.positions, betas)
-        st, per = s.solver.stats, s.solver.instance_stats
-        x = s.state.positions.numpy().astype(np.float32)
-        wall = time.perf_counter() - t_frame
-        body_now = s.wbody.vertices.numpy() if s.config.record_body and phase == "animate" else None
-        starts = np.asarray(s.model.vertex_start)
-        for i in range(s.num_instances):
-            if i in failures:
-                continue
-            row = rows[i]
-            row.update(depth_before_projection=float(per["max_penetration"][i]), retries=int(per["retries"][i]),
-                       unresolved=int(per["unresolved"][i]), newton_iterations=st["newton_iterations"],
-                       cg_iterations=st["cg_iterations"], step_time=step_time, wall_time=wall)
-            xi = x[starts[i]:starts[i + 1]]
-            if phase != "animate":
-                self._proto_positions[i].append(xi)
-                self._proto_stats[i].append(row)
-            elif k < s.num_out[i]:
-                self._positions[i].append(xi)
-                self._stats[i].append(row)
-                if body_now is not None:
-                    self._body[i].append(body_now[i].astype(np.float32))
+    def record(self, phase: str, k: int, row: dict, positions: np.ndarray, body: np.ndarray | None) -> None:
+        """Keep frame (phase, k): its row of statistics, cloth [m] (V, 3) and posed body [m] (Vb, 3) or None;
+        :meth:`record_start` for a clip's frame 0."""
         if phase != "animate":
+            self._proto_positions.append(positions)
+            self._proto_stats.append(row)
             self._proto_phases.append(phase)
-        self._frames += 1
+        else:
+            self._positions.append(positions)
+            self._stats.append(row)
+            if body is not None and self.setup.config.record_body:
+                self._body.append(body.astype(np.float32))
 
-    def results(self, failures: dict) -> list:
-        """One :class:`SimulationResult` per job, or its :class:`SimulationFailure` (failures:
-        instance -> (phase, frame, message), :attr:`FrameRunner.failures`), in job order."""
-        s = self.setup
-        wall_total = time.perf_counter() - self._t_start
-        body_faces = s.wbody.faces.numpy().reshape(-1, 3).astype(np.int32)
-        out: list = []
-        for i in range(s.num_instances):
-            if i in failures:
-                phase, k, message = failures[i]
-                out.append(SimulationFailure(s.keys[i], message, phase, k))
-            else:
-                out.append(self._result(i, wall_total, body_faces))
-        return out
+    def record_start(self, row: dict, positions: np.ndarray, body: np.ndarray | None) -> None:
+        """Keep the clip's frame 0, the rest phase's end state (``row`` measured there; it took no step)."""
+        self.record("animate", 0, {**row, **_NO_STEP}, positions, body)
 
-    def _result(self, i: int, wall_total: float, body_faces: np.ndarray) -> SimulationResult:
+    def failure(self, phase: str, k: int, message: str) -> SimulationFailure:
+        return SimulationFailure(self.key, message, phase, k)
+
+    def result(self) -> SimulationResult:
+        """The job's :class:`SimulationResult` (all of its frames recorded)."""
         s, cfg = self.setup, self.setup.config
         garment, nv = s.garment, s.garment.num_vertices
-        stats = stack_stats(self._stats[i])
-        proto = self._proto_stats[i]
+        wall_total = time.perf_counter() - self._t_start
+        frames = len(self._stats) + len(self._proto_stats)
+        stats = stack_stats(self._stats)
+        proto = self._proto_stats
         metadata = dict(
-            key=s.keys[i], garment=garment.name, garment_vertices=int(nv), garment_triangles=int(len(garment.faces)),
-            body=s.body.name, body_vertices=int(s.body.num_vertices), motion=s.clips[i].name,
-            motion_fps=float(s.clips[i].fps), fps=s.fps, substeps=s.substeps, dt=s.dt, frames=s.num_out[i],
-            betas=[float(b) for b in s.target_betas[i]], material=asdict(s.materials[i]),
+            key=self.key, garment=garment.name, garment_vertices=int(nv), garment_triangles=int(len(garment.faces)),
+            body=s.body.name, body_vertices=int(s.body.num_vertices), motion=self.clip.name,
+            motion_fps=float(self.clip.fps), fps=s.fps, substeps=s.substeps, dt=s.dt, frames=self.num_out,
+            betas=[float(b) for b in self.betas], material=asdict(self.material),
             config=dict(relax_frames=cfg.relax_frames, ramp_frames=cfg.ramp_frames, rest_frames=cfg.rest_frames,
                         device=str(s.device), cuda_graph=s.use_graph),
             solver=json.loads(json.dumps(asdict(cfg.solver), default=float)),
             batch_size=s.num_instances,
-            initial_inside=int(s.initial[i]["inside_count"]),
+            initial_inside=int(s.initial_inside),
             wall_time=wall_total,
-            wall_time_per_frame=wall_total / self._frames,
+            wall_time_per_frame=wall_total / max(frames, 1),
+            wall_share=self.share,
             max_depth_regular=float(stats["max_depth_regular"].max()),
             max_self_intersection_count=int(stats["self_intersection_count"].max()),
             retries=int(stats["retries"].sum() + sum(r["retries"] for r in proto)),
         )
         return SimulationResult(
-            positions=np.stack(self._positions[i]),
+            positions=np.stack(self._positions),
             faces=np.asarray(garment.faces, dtype=np.int32),
             fps=s.fps, dt=s.dt, stats=stats,
-            protocol_positions=(np.stack(self._proto_positions[i]) if self._proto_positions[i]
+            protocol_positions=(np.stack(self._proto_positions) if self._proto_positions
                                 else np.zeros((0, nv, 3), np.float32)),
             protocol_phases=np.array(self._proto_phases, dtype=str),
             protocol_stats=stack_stats(proto) if proto else {key: np.zeros(0) for key in FRAME_STAT_KEYS},
-            body_vertices=np.stack(self._body[i]) if cfg.record_body else None,
-            body_faces=body_faces,
+            body_vertices=np.stack(self._body) if cfg.record_body else None,
+            body_faces=s.wbody.faces.numpy().reshape(-1, 3).astype(np.int32),
             metadata=metadata,
         )
