@@ -524,8 +524,9 @@ def test_info_and_export(tiny, tmp_path):
 
 
 def test_ray_local_matches_local(tiny, tmp_path):
-    """`--ray local`: batches as Ray tasks on this machine's CPUs, a task that fails once is retried,
-    and the store equals the locally generated one."""
+    """`--ray local`: one pool per Ray task on this machine's CPUs (the template and fits in one, the
+    sequences dealt out), a task that fails once is retried, and the store equals the locally
+    generated one."""
     pytest.importorskip("ray")
     out = tmp_path / "ray"
     spec = load_spec("tiny").with_overrides(motions=["walk_fast"], batch_size=1)

@@ -193,9 +193,15 @@ def _next_round(queue: list[Job], first: bool) -> list[Job]:
 
 
 def _split(jobs: list[Job], parts: int) -> list[list[Job]]:
-    """Jobs dealt round-robin (in plan order) into at most ``parts`` groups of similar work."""
-    parts = max(1, min(parts, len(jobs)))
-    return [jobs[i::parts] for i in range(parts)]
+    """Jobs in at most ``parts`` groups of similar work: the template and the fits together in the
+    first (a fit is written only after the template), the sequences dealt round-robin, longest first."""
+    setup = [j for j in jobs if j.kind != "sequence"]
+    seqs = [j for j in jobs if j.kind == "sequence"]
+    parts = max(1, min(parts, len(seqs) + bool(setup)))
+    groups = [list(setup)] + [[] for _ in range(parts - 1)]
+    for i, job in enumerate(seqs):
+        groups[(i + bool(setup)) % parts].append(job)
+    return [g for g in groups if g]
 
 
 class _LocalExecutor:
