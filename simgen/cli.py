@@ -368,6 +368,24 @@ def body_info(
     typer.echo(json.dumps(desc, indent=2) if as_json else format_body_description(desc))
 
 
+@body_app.command("flesh-mesh")
+def body_flesh_mesh(
+    out: Path = typer.Option(..., "--out", help="Output .npz (pass it to the soft-tissue simulation)."),
+    body: str = typer.Option("open", "--body", help=BODY_HELP),
+    edge: float = typer.Option(0.025, "--edge", help="Tetrahedron edge length at the skin [m]; 8 cm inside."),
+) -> None:
+    """Tetrahedralize the body's volume for the soft-tissue simulation (CPU, a few minutes; needs
+    `pip install 'simgen[softtissue]'`). The bundled open body has one already."""
+    from simgen.softtissue.mesh import build_flesh_mesh
+
+    model = _load_body(body)
+    typer.echo(f"tetrahedralizing {model.name} ({model.num_vertices} vertices), {edge * 100:g} cm at the skin ...",
+               err=True)
+    mesh = build_flesh_mesh(model, edge=edge)
+    path = mesh.save(out)
+    typer.echo(f"{path}: {mesh.num_nodes} nodes, {mesh.num_tets} tetrahedra")
+
+
 @body_app.command("bake")
 def body_bake(
     out: Optional[Path] = typer.Option(None, "--out", help="Output .npz (default: the bundled file in the package)."),

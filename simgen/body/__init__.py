@@ -17,12 +17,13 @@ from __future__ import annotations
 import importlib
 from pathlib import Path
 
-from simgen.body.model import NUM_JOINTS, SMPL_JOINT_NAMES, SMPL_PARENTS, BodyModel, BodyOutput
+from simgen.body.model import NUM_JOINTS, SMPL_JOINT_NAMES, SMPL_PARENTS, BodyModel, BodyOutput, skinning_transforms
 from simgen.body.smpl_file import load_body_file
 from simgen.errors import InputError
 
 __all__ = [
     "BodyModel", "BodyOutput", "SMPL_JOINT_NAMES", "SMPL_PARENTS", "NUM_JOINTS", "load", "load_body_file",
+    "skinning_transforms",
     "OPEN_BODY_PATH", "TorchBody", "WarpBody", "axis_angle_to_matrix_torch", "bake_open_body", "describe_body",
     "format_body_description", "SurfaceProjection", "SurfaceMesh", "project_to_surface",
 ]

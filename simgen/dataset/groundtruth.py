@@ -33,6 +33,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from simgen.body.model import skinning_transforms
 from simgen.errors import InputError
 
 __all__ = [
@@ -162,58 +163,6 @@ def fit_displacement(fit_vertices, template_smoothed, faces, params: SmoothingPa
     if fit.shape != tc.shape:
         raise InputError(f"fit_vertices {fit.shape} and template_smoothed {tc.shape} differ in shape")
     return smooth_garment(fit, faces, params) - tc
-
-
-@functools.lru_cache(maxsize=4)
-def _joint_regression(body) -> tuple[np.ndarray, np.ndarray]:
-    """Rest joints of the template body (24, 3) and their shape directions (24, 3, B)."""
-    J0 = body.J_regressor @ body.v_template
-    JS = np.einsum("jv,vcb->jcb", body.J_regressor, body.shapedirs)
-    return J0, JS
-
-
-def skinning_transforms(body, betas, poses, trans) -> np.ndarray:
-    """The body's joint skinning transforms A(beta, theta) of every frame (the W of eqs. 4.3, 4.5).
-
-    body: :class:`simgen.body.BodyModel`; betas (T, B') or (B',) (missing components zero);
-    poses [rad] axis-angle (T, 24, 3); trans [m] (T, 3). Returns (T, 24, 4, 4) float64: joint j
-    maps a point of the shaped rest body to its posed world position, root translation included
-    (the same as ``body.forward(...).transforms``, computed from the joints only: no vertices).
-    """
-    from simgen.body.model import NUM_JOINTS
-    from simgen.rotations import axis_angle_to_matrix
-
-    poses = np.asarray(poses, dtype=np.float64)
-    if poses.ndim == 2:
-        poses = poses[None]
-    if poses.ndim != 3 or poses.shape[1:] != (NUM_JOINTS, 3):
-        raise InputError(f"poses must have shape (T, 24, 3), got {poses.shape}")
-    n = len(poses)
-    trans = np.asarray(trans, dtype=np.float64).reshape(-1, 3)
-    if len(trans) not in (1, n):
-        raise InputError(f"trans has {len(trans)} rows but poses has {n} frames")
-    trans = np.broadcast_to(trans, (n, 3))
-    b = body.check_betas(betas, batch=n)
-    if len(b) != n:
-        raise InputError(f"betas has {len(b)} rows but poses has {n} frames")
-    J0, JS = _joint_regression(body)
-    J = J0[None] + np.einsum("jcb,nb->njc", JS, b)
-    R = axis_angle_to_matrix(poses)
-    G = np.zeros((n, NUM_JOINTS, 4, 4))
-    G[:, :, 3, 3] = 1.0
-    G[:, 0, :3, :3] = R[:, 0]
-    G[:, 0, :3, 3] = J[:, 0]
-    parents = body.parents
-    for j in range(1, NUM_JOINTS):
-        p = parents[j]
-        local = np.zeros((n, 4, 4))
-        local[:, :3, :3] = R[:, j]
-        local[:, :3, 3] = J[:, j] - J[:, p]
-        local[:, 3, 3] = 1.0
-        G[:, j] = G[:, p] @ local
-    A = G.copy()
-    A[:, :, :3, 3] = G[:, :, :3, 3] - np.einsum("njab,njb->nja", G[:, :, :3, :3], J) + trans[:, None]
-    return A
 
 
 def wrinkle_displacements(garment_vertices, transforms, skin_weights, template_smoothed, fit_disp) -> np.ndarray:

@@ -73,6 +73,13 @@ class SoftTissueSequence:
     def num_frames(self) -> int:
         return len(self.poses)
 
+    @classmethod
+    def from_result(cls, result) -> "SoftTissueSequence":
+        """The sequence of a simulated :class:`simgen.softtissue.simulate.SoftTissueResult`."""
+        return cls(name=result.name, subject=result.subject, motion=result.motion, betas=result.betas,
+                   poses=result.poses, trans=result.trans, fps=result.fps, displacements=result.displacements,
+                   meta=dict(result.meta))
+
 
 @dataclass
 class SoftTissueData:

@@ -1,0 +1,204 @@
+"""simulate_softtissue(): the flesh of N body shapes doing one motion, as SoftSMPL's ground truth.
+
+The flesh's nodes live in the unposed frame: node i at rest X_i (the shaped template) goes to
+x_i = M_i (X_i + u_i) + t_i in the world, with (M_i, t_i) = sum_j w_ij A_j the body's blended
+skinning transform (the same linear blend skinning as the skin's), so u is what the rig does not
+explain and nothing is counted twice. Newton's law in the world, m x'' = M f_int(u) + m g, seen from
+the moving frame and linearised in u, is
+
+    m u'' + C u' + K u = m M_i^-1 (g - a_i),   a_i = sum_j w_ij A_j''(X_i)
+
+with a_i the rig's acceleration of the node: the skeleton drives the flesh through its
+acceleration and its orientation against gravity. Left out are the frame's inertial forces on u
+itself (centrifugal, Coriolis, Euler: of order omega^2 |u| and 2 omega |u'|), a few per cent of
+gravity on the torso for |u| of centimetres.
+
+The skeleton's transforms A_j(t) are the clip resampled at ``params.rate`` (240 Hz), low-passed
+with a zero-phase 4th-order Butterworth at ``params.lowpass`` (12 Hz) entry by entry (on what a
+straight line between the clip's ends leaves, so uniform motion stays uniform), and differenced
+twice (central differences). The simulation starts at the static equilibrium of its
+first step and outputs u at the body's vertices (the mesh's embedding) at ``params.fps`` (60):
+SoftSMPL's Delta, the displacement in the unposed frame.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import warp as wp
+
+from simgen.errors import InputError
+from simgen.softtissue.model import FleshModel
+from simgen.softtissue.params import FleshParams
+from simgen.softtissue.solver import FleshSolver
+
+__all__ = ["simulate_softtissue", "skeleton_tracks", "rig_forces", "SoftTissueResult"]
+
+
+@dataclass
+class SoftTissueResult:
+    """One shape's simulated soft tissue (the fields of SoftSMPL's
+    :class:`simgen.learn.softtissue.SoftTissueSequence`, which ``SoftTissueSequence.from_result`` makes).
+
+    name: "<subject>_<motion>"; subject; motion; betas (B,); poses (T, 72) [rad] axis-angle; trans
+    (T, 3) [m]; fps [1/s]; displacements (T, V, 3) [m]: Delta at the body's vertices in the unposed
+    frame; meta: the parameters and the run's numbers (see :func:`simulate_softtissue`).
+    """
+
+    name: str
+    subject: str
+    motion: str
+    betas: np.ndarray
+    poses: np.ndarray
+    trans: np.ndarray
+    fps: float
+    displacements: np.ndarray
+    meta: dict = field(default_factory=dict)
+
+    @property
+    def num_frames(self) -> int:
+        return len(self.poses)
+
+
+@wp.kernel(enable_backward=False)
+def _rig_force(rest: wp.array(dtype=wp.vec3), weights: wp.array(dtype=wp.float32), nodes: int,
+               node_instance: wp.array(dtype=wp.int32), transforms: wp.array(dtype=wp.mat44),
+               accelerations: wp.array(dtype=wp.mat44), offset: int, mass: wp.array(dtype=wp.float32),
+               pinned: wp.array(dtype=wp.int32), gravity: float, f: wp.array(dtype=wp.vec3)):
+    i = wp.tid()
+    if pinned[i] != 0:
+        f[i] = wp.vec3(0.0)
+        return
+    k = node_instance[i]
+    n = i - k * nodes
+    x = rest[i]
+    frame = wp.mat33(0.0)
+    acc = wp.vec3(0.0)
+    for j in range(24):
+        w = weights[n * 24 + j]
+        if w > 0.0:
+            a = transforms[offset + k * 24 + j]
+            d = accelerations[offset + k * 24 + j]
+            frame += w * wp.mat33(a[0, 0], a[0, 1], a[0, 2], a[1, 0], a[1, 1], a[1, 2], a[2, 0], a[2, 1], a[2, 2])
+            acc += w * wp.vec3(d[0, 0] * x[0] + d[0, 1] * x[1] + d[0, 2] * x[2] + d[0, 3],
+                               d[1, 0] * x[0] + d[1, 1] * x[1] + d[1, 2] * x[2] + d[1, 3],
+                               d[2, 0] * x[0] + d[2, 1] * x[1] + d[2, 2] * x[2] + d[2, 3])
+    f[i] = mass[i] * (wp.inverse(frame) * (wp.vec3(0.0, -gravity, 0.0) - acc))
+
+
+def skeleton_tracks(body, clip, betas: np.ndarray, params: FleshParams) -> tuple[np.ndarray, np.ndarray, object]:
+    """The joint transforms A (S, N, 24, 4, 4) and their second time derivative [1/s^2] at
+    ``params.rate``, low-passed before differencing (module doc), for each shape of betas (N, B);
+    and the clip at that rate."""
+    from scipy.signal import butter, filtfilt
+
+    from simgen.body.model import skinning_transforms
+    from simgen.motion.ops import resample
+
+    fine = resample(clip, params.rate)
+    S = fine.num_frames
+    if S < 3:
+        raise InputError(f"motion {clip.name!r} is too short for the soft-tissue simulation ({clip.num_frames} frames)")
+    A = np.stack([skinning_transforms(body, b, fine.poses, fine.trans) for b in np.atleast_2d(betas)], axis=1)
+    bb, aa = butter(4, params.lowpass / (0.5 * params.rate))
+    if S > 3 * max(len(aa), len(bb)):
+        # The filter acts on what a straight line through the ends leaves, so a uniform motion (no
+        # acceleration) stays exactly uniform whatever the filter's start and end transients.
+        ramp = np.linspace(0.0, 1.0, S).reshape((S,) + (1,) * (A.ndim - 1))
+        line = A[:1] + ramp * (A[-1:] - A[:1])
+        A = line + filtfilt(bb, aa, A - line, axis=0, padtype="odd", padlen=min(S - 1, 3 * max(len(aa), len(bb))))
+    h = 1.0 / params.rate
+    dd = np.zeros_like(A)
+    dd[1:-1] = (A[2:] - 2.0 * A[1:-1] + A[:-2]) / (h * h)
+    dd[0], dd[-1] = dd[1], dd[-2]
+    return A, dd, fine
+
+
+def rig_forces(model: FleshModel, weights: wp.array, A: wp.array, dd: wp.array, step: int, out: wp.array) -> wp.array:
+    """out = m M^-1 (g - a) per node (module doc) at step ``step`` of the uploaded tracks."""
+    N = model.num_instances
+    wp.launch(_rig_force, dim=model.total_nodes, device=model.device,
+              inputs=[model.rest_positions, weights, model.num_nodes, model.node_instance, A, dd, step * N * 24,
+                      model.node_mass, model.node_pinned, float(model.params.gravity)], outputs=[out])
+    return out
+
+
+def _min_det(model: FleshModel, u: np.ndarray) -> np.ndarray:
+    """Smallest det(I + grad u) over each instance's tetrahedra (> 0: none inverted), (N,)."""
+    from simgen.softtissue.elastic import rest_shape
+
+    t = model.tets_host
+    out = []
+    for k, x in enumerate(model.rest):
+        uk = u[k]
+        ds = np.stack([uk[t[:, 1]] - uk[t[:, 0]], uk[t[:, 2]] - uk[t[:, 0]], uk[t[:, 3]] - uk[t[:, 0]]], axis=2)
+        bm, _ = rest_shape(x, t)
+        out.append(float(np.linalg.det(np.eye(3) + ds @ bm).min()))
+    return np.array(out)
+
+
+def simulate_softtissue(body, clip, betas=None, params: FleshParams | None = None, *, mesh=None, device=None,
+                        subjects=None, progress=None) -> list:
+    """Simulate the flesh of each shape in ``betas`` (N, B') doing ``clip``; one
+    :class:`SoftTissueResult` per shape, at ``params.fps``.
+
+    body: :class:`BodyModel` or a body name; clip: :class:`MotionClip` or a library name; betas:
+    None (the template) or (N, B'); mesh: a :class:`FleshMesh` or its file (None: the body's
+    bundled one); subjects: N names (default "shape<k>"); progress(done, total) after each output
+    frame. Each sequence's ``meta`` holds the parameters, the free layer [m], the pins added to
+    floating free sets, the PCG iterations (largest), and ``min_det``, the smallest
+    det(I + grad u) over every tetrahedron and frame (> 0: none inverted).
+    """
+    from dataclasses import asdict
+
+    from simgen import body as body_pkg
+    from simgen.body.model import BodyModel
+    from simgen.motion.clip import MotionClip
+    from simgen.motion.library import load_motion
+    from simgen.motion.ops import resample
+    from simgen.softtissue.mesh import FleshMesh, flesh_mesh
+
+    p = params if params is not None else FleshParams()
+    body = body if isinstance(body, BodyModel) else body_pkg.load(body)
+    clip = clip if isinstance(clip, MotionClip) else load_motion(clip)
+    if mesh is None or not isinstance(mesh, FleshMesh):
+        mesh = flesh_mesh(body, mesh)
+    b = body.check_betas(np.zeros((1, body.num_betas)) if betas is None else np.atleast_2d(betas))
+    N = len(b)
+    names = list(subjects) if subjects is not None else [f"shape{k}" for k in range(N)]
+    model = FleshModel.for_body(mesh, body, b, p, device=device)
+    solver = FleshSolver(model)
+    A, dd, fine = skeleton_tracks(body, clip, b, p)
+    dev = model.device
+    As = wp.array(A.reshape(-1, 4, 4).astype(np.float32), dtype=wp.mat44, device=dev)
+    dds = wp.array(dd.reshape(-1, 4, 4).astype(np.float32), dtype=wp.mat44, device=dev)
+    weights = wp.array(np.tile(mesh.weights.astype(np.float32), (N, 1)).reshape(-1), device=dev)
+    f = wp.zeros(model.total_nodes, dtype=wp.vec3, device=dev)
+    every = int(round(p.rate / p.fps))
+    out_clip = resample(clip, p.fps)
+    frames = min(out_clip.num_frames, (len(A) - 1) // every + 1)
+    h = 1.0 / p.rate
+    solver.static(rig_forces(model, weights, As, dds, 0, f))
+    deltas, min_det, cg = [], np.full(N, np.inf), 0
+    for k in range(frames):
+        if k > 0:
+            for s in range((k - 1) * every + 1, k * every + 1):
+                solver.step(rig_forces(model, weights, As, dds, s, f), h)
+                cg = max(cg, solver.cg_iterations)
+        u = solver.u.numpy().reshape(N, -1, 3).astype(np.float64)
+        min_det = np.minimum(min_det, _min_det(model, u))
+        deltas.append(mesh.skin(u).astype(np.float32))
+        if progress is not None:
+            progress(k + 1, frames)
+    disp = np.stack(deltas, axis=1)                                                         # (N, T, V, 3)
+    poses = out_clip.poses[:frames].reshape(frames, -1)
+    out = []
+    for k in range(N):
+        meta = {"source": "simgen.softtissue simulation", "params": asdict(p), "layer_m": model.layer[k],
+                "extra_pins": int(model.extra_pins[k]), "cg_iterations_max": int(cg), "min_det": float(min_det[k]),
+                "mesh": {"nodes": mesh.num_nodes, "tets": mesh.num_tets, "pinned": int(model.pinned[k].sum())}}
+        out.append(SoftTissueResult(name=f"{names[k]}_{clip.name}", subject=names[k], motion=clip.name,
+                                      betas=b[k], poses=poses, trans=out_clip.trans[:frames], fps=p.fps,
+                                      displacements=disp[k], meta=meta))
+    return out
