@@ -90,7 +90,18 @@ def main(argv=None) -> int:
         out = str(Path(tmp) / "store")
     try:
         t0 = time.perf_counter()
-        reports = generate_dataset(spec, out, max_sequences=a.max_sequences, time_budget=a.time_budget)
+        last = [0.0]
+
+        def progress(done, total):
+            # A line every 15 s on stderr, so that a long run on the device machine shows it is alive.
+            now = time.perf_counter()
+            if now - last[0] >= 15.0 or done == total:
+                last[0] = now
+                print(f"[{now - t0:7.1f} s] {done}/{total} cloth-frames ({done / max(now - t0, 1e-9):.1f}/s)",
+                      file=sys.stderr, flush=True)
+
+        reports = generate_dataset(spec, out, max_sequences=a.max_sequences, time_budget=a.time_budget,
+                                   progress=progress)
         wall = time.perf_counter() - t0
         r = reports[0]
         from simgen.dataset import open_dataset
