@@ -1,7 +1,7 @@
 """Validate the soft-tissue simulation (issue 25 part 1) on the bundled open body; prints (and saves) JSON.
 
     python scripts/softtissue_validate.py --device cpu --json st.json
-    python scripts/softtissue_validate.py --clips run:2.0:3.5 jump:0.8:2.3 --shapes -2 0 2 --device cuda:0
+    python scripts/softtissue_validate.py --clips run:0:5 jump:0:5.5 --shapes -2 0 2 --device cuda:0
 
 For each clip window (library motion, start and end [s]) and each shape (the value of beta 2, the
 open body's body-fat axis: its BMI proxy rises from about 16 at -2 to 32 at +2), the simulation's
@@ -39,7 +39,8 @@ def _commit() -> str:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--clips", nargs="+", default=["run:2.0:3.0", "jump:1.0:2.0"], help="motion:start:end [s]")
+    p.add_argument("--clips", nargs="+", default=["run:0:3", "jump:0:2"],
+                   help="motion:start:end [s]; from a standing start, where the first frame is at rest")
     p.add_argument("--shapes", nargs="+", type=float, default=[-2.0, 0.0, 2.0], help="values of beta 2")
     p.add_argument("--device", default="cpu")
     p.add_argument("--json")

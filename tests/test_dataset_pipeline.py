@@ -166,6 +166,23 @@ def test_simulation_error_is_raised_after_the_jobs_being_written(tmp_path, monke
     assert check_dataset(out).passed
 
 
+def test_a_pool_is_freed_when_its_task_ends(tmp_path, monkeypatch):
+    """Nothing keeps a finished pool (and its device memory) alive: the next pool is sized from the
+    free memory."""
+    import weakref
+
+    pools = []
+    init = SimulationPool.__init__
+
+    def tracked(self, *args, **kwargs):
+        init(self, *args, **kwargs)
+        pools.append(weakref.ref(self))
+
+    monkeypatch.setattr(SimulationPool, "__init__", tracked)
+    (rep,) = generate_dataset(micro(batch_size=2), out=str(tmp_path / "s"), time_budget=600.0)
+    assert rep.written == 2 and pools and all(ref() is None for ref in pools)
+
+
 def test_time_budget_stops_the_pool(tmp_path):
     """With no time left the driver starts nothing; a pool past its deadline stops after the frame
     that measured the frame time: the jobs it had started are dropped unwritten, and the next run

@@ -85,6 +85,24 @@ def test_accept_refuses_jobs_and_abandon_stops_them(inputs):
     assert pool.busy == pool.queued == 0
 
 
+def test_a_job_dropped_before_its_first_frame_leaves_its_slot_idle(inputs):
+    """fill() places a job; abandon() before any frame: the slot never starts (all its vertices
+    pinned, no body) and later frames leave it where it is."""
+    body, garment, walk, squat = inputs
+    pool = SimulationPool(garment, body, 2, CFG, fps=30.0)
+    pool.submit(SimulationJob(squat, frames=2), tag="a")
+    pool.submit(SimulationJob(squat, frames=2), tag="b")
+    pool.fill()
+    assert pool.abandon() == ["a", "b"]
+    pool.submit(SimulationJob(squat, frames=2), tag="c")
+    x0 = pool.setup.state.positions.numpy().copy()
+    pool.step()
+    starts = np.asarray(pool.setup.model.vertex_start)
+    pinned, ids = pool.setup.model.vertex_pinned.numpy(), pool.setup.collider.mesh_ids.numpy()
+    assert pool.busy == 1 and pinned[starts[1]:starts[2]].all() and ids[1] == 0
+    np.testing.assert_array_equal(pool.setup.state.positions.numpy()[starts[1]:starts[2]], x0[starts[1]:starts[2]])
+
+
 def test_pool_input_errors(inputs):
     body, garment, walk, squat = inputs
     from simgen.motion.ops import resample

@@ -130,6 +130,51 @@ def test_a_still_or_uniformly_moving_body_does_not_jiggle(body):
     assert seq.meta["min_det"] > 0.9
 
 
+def test_gravity_and_spin_act_in_the_nodes_frame(body):
+    """The load is m R^T (g - a) in each node's frame: a body held upside down hangs the other way
+    (u flips exactly: the system is linear), and a body spinning about its vertical axis (gravity
+    off) pushes the belly out to the front and the back out to the back (centrifugal)."""
+    from simgen.softtissue import REGIONS, flesh_mesh, simulate_softtissue
+
+    T = 6
+    up = _clip("up", np.tile([0.0, 0.9, 0.0], (T, 1)))
+    flipped = _clip("flipped", np.tile([0.0, 0.9, 0.0], (T, 1)))
+    flipped.poses[:, 0] = [0.0, 0.0, np.pi]                    # root turned half a turn about z
+    (a,) = simulate_softtissue(body, up)
+    (b,) = simulate_softtissue(body, flipped)
+    scale = np.abs(a.displacements[0]).max()
+    assert scale > 2e-3
+    np.testing.assert_allclose(b.displacements[0], -a.displacements[0], atol=1e-3 * scale)
+
+    spin = _clip("spin", np.tile([0.0, 0.9, 0.0], (10, 1)))
+    omega = 2 * np.pi                                          # one turn per second about y
+    spin.poses[:, 0] = np.stack([np.zeros(10), omega * np.arange(10) / 60.0, np.zeros(10)], axis=1)
+    (c,) = simulate_softtissue(body, spin, params=FleshParams(gravity=0.0))
+    region = flesh_mesh(body).region[flesh_mesh(body).skin_tet]
+    out = body.v_template - body.rest_joints()[0][0]                    # from the spin's axis (pelvis)
+    out[:, 1] = 0.0
+    out /= np.linalg.norm(out, axis=1, keepdims=True)
+    d = c.displacements.astype(np.float64)
+    for name in ("belly", "chest", "buttocks", "upper_arm"):
+        sel = region == REGIONS.index(name)
+        radial = np.einsum("tvc,vc->tv", d[:, sel], out[sel]).mean(axis=1)
+        assert np.all(radial > 1e-4), (name, radial)                    # pushed outwards
+        assert np.ptp(radial) < 0.3 * radial.mean(), (name, radial)     # steadily: the spin is uniform
+
+
+def test_shapes_batched_in_one_system_equal_their_runs_alone(body):
+    from simgen.softtissue import simulate_softtissue
+
+    clip = _clip("sway", np.stack([0.02 * np.sin(np.arange(8) / 3.0), np.full(8, 0.9), np.zeros(8)], axis=1))
+    betas = np.zeros((2, body.num_betas))
+    betas[1, 2] = 2.0
+    both = simulate_softtissue(body, clip, betas)
+    (alone,) = simulate_softtissue(body, clip, betas[1:])
+    assert np.abs(both[1].displacements).max() > 1e-3
+    np.testing.assert_allclose(both[1].displacements, alone.displacements, atol=1e-6)
+    assert both[1].meta["layer_m"] > both[0].meta["layer_m"]         # the heavier shape's layer is thicker
+
+
 def test_the_skeleton_is_low_passed_before_it_is_differenced(body):
     """30 Hz jitter of 1 mm on the root (an acceleration of 36 m/s^2 if differenced raw) is removed by
     the 12 Hz low-pass; the 1 Hz sway under it keeps its acceleration."""
@@ -203,3 +248,8 @@ def test_flesh_mesh_is_built_saved_and_checked(body, tmp_path, monkeypatch):
     (tmp_path / "bad.npz").write_bytes(b"not a zip")
     with pytest.raises(InputError, match="bad.npz"):
         flesh_mesh(body, tmp_path / "bad.npz")
+    (tmp_path / "cut.npz").write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+    with pytest.raises(InputError, match="cut.npz"):
+        flesh_mesh(body, tmp_path / "cut.npz")
+    with pytest.raises(InputError, match="below half the rate"):
+        FleshParams(lowpass=130.0)

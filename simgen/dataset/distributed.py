@@ -27,16 +27,14 @@ __all__ = ["RayExecutor", "MAX_TASK_RETRIES"]
 MAX_TASK_RETRIES = 2
 
 
-def _run_pool_task(task, budget_s):
-    # Runs in a Ray worker: quiet Warp, then the same function as local execution (the budget
-    # becomes a deadline on the worker's own clock).
-    import time
-
+def _run_pool_task(task, deadline):
+    # Runs in a Ray worker: quiet Warp, then the same function as local execution. The deadline is
+    # a wall-clock time fixed by the driver, so a task that waits for a GPU or is retried keeps it.
     from simgen._warp_log import quiet_warp
     from simgen.dataset.execute import run_pool_task
 
     quiet_warp()
-    return run_pool_task(task, deadline=None if budget_s is None else time.perf_counter() + budget_s)
+    return run_pool_task(task, deadline=deadline)
 
 
 class RayExecutor:
@@ -77,7 +75,10 @@ class RayExecutor:
     def run(self, tasks, on_outcome, progress, budget_s) -> list:
         """Run ``tasks`` at once; on_outcome(outcome) for each job as its task's result comes back;
         progress(cloth_frames) once per task. Returns each task's result, in order."""
-        pending = {self._remote.remote(task, budget_s): i for i, task in enumerate(tasks)}
+        import time
+
+        deadline = None if budget_s is None else time.time() + budget_s
+        pending = {self._remote.remote(task, deadline): i for i, task in enumerate(tasks)}
         results: list = [None] * len(tasks)
         frames = 0
         while pending:

@@ -112,7 +112,11 @@ def pool_slots(spec, device: str, garment) -> int:
         return spec.batch_size
     if not str(device).startswith("cuda"):
         return CPU_SLOTS
+    import gc
+
     import warp as wp
+
+    gc.collect()   # a pool that just ended may still hold device memory until collected
 
     free = wp.get_device(device).free_memory
     per = SLOT_BYTES_PER_GARMENT_VERTEX * garment.num_vertices
@@ -320,6 +324,10 @@ class _Writes:
             return self.writer.write(job, res), None, time.perf_counter() - t0
         except StoreWriteError as exc:
             return None, str(exc), time.perf_counter() - t0
+        except Exception as exc:  # noqa: BLE001 - one job's ground truth failed: that job fails, the pool goes on
+            outcome = {**_outcome_base(job), "ok": False,
+                       "message": f"its ground truth or statistics failed: {type(exc).__name__}: {exc}"}
+            return outcome, None, time.perf_counter() - t0
 
     def collect(self, wait: bool = False) -> None:
         """Hand on the outcomes of the writes that have ended (all of them with ``wait``)."""
@@ -356,15 +364,18 @@ def run_pool_task(task: BatchTask, *, progress=None, on_outcome=None, deadline: 
     job as it ends (behind the simulation with ``spec.overlap_writes``).
 
     progress(cloth_frames_done) after every pool frame; on_outcome(outcome) as each job's write ends
-    (in this thread); deadline: a ``time.perf_counter()`` value: no job starts that would not end
-    before it (at the pool's mean frame time so far), and at it the jobs still running are dropped
-    (the first ones start before any frame time is known); the jobs not started or dropped come back
-    in ``not_done``, the cloth-frames the dropped ones had run in ``abandoned_cloth_frames``. Jobs whose node is already committed (an earlier attempt of this task) are not
-    simulated again. Returns {outcomes, error, not_done, abandoned_cloth_frames, slots, wall, cloth_frames, step_s, write_s,
-    write_wait}: slots: the pool's; wall [s] the pool's frames (simulation, statistics, host copies); step_s [s] the
-    solver's stepping within them; write_s [s] the node writes; write_wait [s] the part of them the
-    simulation waited for. A write failure stops the task: ``error`` is one sentence (the store
-    stays consistent; what was committed is kept).
+    (in this thread); deadline: a ``time.time()`` value (a wall clock, so that a Ray worker that
+    starts late or a retried task keeps the run's budget): no job starts that would not end before
+    it (at the pool's recent frame time, writes waited for included), and at it the jobs still
+    running are dropped (the first ones start before any frame time is known); the jobs not started
+    or dropped come back in ``not_done``, the planned cloth-frames of the dropped ones in
+    ``abandoned_cloth_frames``. Jobs whose node is already committed (an earlier attempt of this
+    task) are not simulated again. Returns {outcomes, error, not_done, abandoned_cloth_frames,
+    slots, wall, cloth_frames, step_s, write_s, write_wait}: slots: the pool's; wall [s] the pool's
+    frames (simulation, statistics, host copies); step_s [s] the solver's stepping within them;
+    write_s [s] the node writes; write_wait [s] the part of them the simulation waited for. A store
+    write failure stops the task: ``error`` is one sentence (the store stays consistent; what was
+    committed is kept).
     """
     from simgen.sim import SimulationJob, SimulationPool
 
@@ -388,8 +399,8 @@ def run_pool_task(task: BatchTask, *, progress=None, on_outcome=None, deadline: 
                 on_outcome(outcomes[-1])
         else:
             todo.append(job)
-    report = {"outcomes": outcomes, "error": None, "not_done": [], "abandoned_cloth_frames": 0, "slots": 0, "wall": 0.0, "cloth_frames": 0,
-              "step_s": 0.0, "write_s": 0.0, "write_wait": 0.0}
+    report = {"outcomes": outcomes, "error": None, "not_done": [], "abandoned_cloth_frames": 0, "slots": 0,
+              "wall": 0.0, "cloth_frames": 0, "step_s": 0.0, "write_s": 0.0, "write_wait": 0.0}
     if not todo:
         return report
     slots = min(pool_slots(spec, config.device, garment), len(todo))
@@ -399,9 +410,11 @@ def run_pool_task(task: BatchTask, *, progress=None, on_outcome=None, deadline: 
     writes = _Writes(NodeWriter(spec, config, garment, body, loc, slots), spec.overlap_writes, on_outcome)
 
     def accept(job, frames) -> bool:
-        if deadline is None or pool.frames_run == 0:
+        frame_s = pool.recent_frame_time()
+        if deadline is None or frame_s is None:
             return True
-        return time.perf_counter() + frames * pool.wall / pool.frames_run <= deadline
+        waited = writes.wait_s / max(pool.frames_run, 1)
+        return time.time() + frames * (frame_s + waited) <= deadline
 
     pool.accept = accept
     abandoned: list = []
@@ -415,15 +428,17 @@ def run_pool_task(task: BatchTask, *, progress=None, on_outcome=None, deadline: 
             if writes.error is not None:
                 pool.refused += pool.drop_queue()
                 break
-            if deadline is not None and time.perf_counter() > deadline:
+            if deadline is not None and time.time() > deadline:
                 # Past the budget (the first jobs start before any frame time is known): stop.
                 pool.refused += pool.drop_queue()
                 abandoned = pool.abandon()
                 break
     finally:
         writes.close()
-    report.update(not_done=pool.refused + abandoned, abandoned_cloth_frames=sum(
-                      job_cloth_frames(spec, [j]) for j in abandoned), slots=slots, outcomes=outcomes + writes.outcomes, error=writes.error, wall=pool.wall,
+        pool.accept = None   # the closure holds the pool: free its device memory with the pool
+    report.update(not_done=pool.refused + abandoned,
+                  abandoned_cloth_frames=sum(job_cloth_frames(spec, [j]) for j in abandoned), slots=slots,
+                  outcomes=outcomes + writes.outcomes, error=writes.error, wall=pool.wall,
                   cloth_frames=pool.cloth_frames, step_s=pool.step_time, write_s=writes.write_s,
                   write_wait=writes.wait_s)
     return report

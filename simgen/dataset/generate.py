@@ -11,7 +11,8 @@ One store per garment (docs/architecture.md, "Dataset store"). For each store th
    relaxation first, then the fits, then the sequences longest first, each starting as a slot
    frees up; on Ray the jobs are dealt into one pool per GPU worker
    (:mod:`simgen.dataset.distributed`);
-4. enters every outcome into the manifest (rewritten atomically after each) and runs a failed job
+4. enters every outcome into the manifest (rewritten atomically every few seconds and after each
+   pool) and runs a failed job
    (diverged, or a sequence with a strain outlier: ``execution.retry_strain_outliers``) again in a
    later pool with the substep halved, up to ``max_attempts`` (a pool shares one substep; a failed
    template relaxation runs again alone first, since the fits need it).
@@ -172,6 +173,10 @@ def plan_jobs(spec: DatasetSpec, garment_name: str, body) -> list[Job]:
     return jobs
 
 
+#: [s] The driver rewrites the manifest at most this often while a pool runs (and after each pool).
+MANIFEST_EVERY_S = 5.0
+
+
 def _plan_order(jobs: list[Job]) -> list[Job]:
     """Template, fits (plan order), then sequences longest first (the pool's tail stays short)."""
     rank = {"template": 0, "fit": 1, "sequence": 2}
@@ -213,7 +218,7 @@ class _LocalExecutor:
     def run(self, tasks, on_outcome, progress, budget_s):
         results = []
         for task in tasks:
-            deadline = None if budget_s is None else time.perf_counter() + budget_s
+            deadline = None if budget_s is None else time.time() + budget_s
             results.append(run_pool_task(task, progress=progress, on_outcome=on_outcome, deadline=deadline))
         return results
 
@@ -298,6 +303,7 @@ class _Driver:
         self.executor, self.report, self.progress, self.say, self.device = executor, report, progress, say, device
         self.retry: list[Job] = []
         self.by_key: dict = {}
+        self._saved = time.perf_counter()
         self.total = 0       # cloth-frames planned (retries add theirs)
         self.done = 0        # cloth-frames simulated in the rounds that ended
         self.shown = 0
@@ -308,6 +314,12 @@ class _Driver:
             self.progress(self.shown, self.total)
 
     def run(self, pending: list[Job], time_budget: float | None, t_start: float) -> None:
+        try:
+            self._rounds(pending, time_budget, t_start)
+        finally:
+            self.store.save_manifest()   # what was recorded since the last save, also on an error
+
+    def _rounds(self, pending: list[Job], time_budget: float | None, t_start: float) -> None:
         spec, report = self.spec, self.report
         queue = list(pending)
         self.total = job_cloth_frames(spec, queue)
@@ -382,4 +394,9 @@ class _Driver:
             report.retried += 1
         else:
             report.failed[job.key] = o["message"]
-        store.save_manifest()
+        # Rewritten every few seconds, not after every job (a large manifest on an object store
+        # costs the pool's time); each round ends with a save, and a kill in between is what
+        # reconcile() repairs on the next run (committed nodes are adopted).
+        if time.perf_counter() - self._saved > MANIFEST_EVERY_S:
+            store.save_manifest()
+            self._saved = time.perf_counter()

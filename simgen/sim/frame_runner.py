@@ -121,6 +121,8 @@ class FrameRunner:
         """Make ``slots`` idle: pinned where they are, still, with no body."""
         slots = list(slots)
         self.active[slots] = False
+        for i in slots:
+            self._placed.pop(i, None)   # placed but not started yet: it never starts
         self._idle(slots)
 
     def take_failures(self) -> dict:

@@ -87,6 +87,7 @@ class SimulationPool:
         self._clips: dict = {}
         self.accept = None
         self.refused: list = []
+        self._recent: deque = deque(maxlen=32)   # [s] wall time of the last frames
         self.frames_run = 0          # frames stepped
         self.cloth_frames = 0        # slot-frames stepped (busy slots summed over frames)
         self.step_time = 0.0         # [s] the solver's stepping summed over frames
@@ -121,6 +122,13 @@ class SimulationPool:
         betas = (np.zeros(self.body.num_betas) if job.betas is None
                  else self.body.check_betas(job.betas).reshape(-1))
         self._queue.append(_Queued(job if tag is None else tag, job, clip, material, num_out, betas))
+
+    def recent_frame_time(self) -> float | None:
+        """[s] The median wall time of the last frames (after the first two, which load kernels and
+        capture graphs; until then the mean of those), or None before any frame."""
+        if self._recent:
+            return float(np.median(self._recent))
+        return self.wall / self.frames_run if self.frames_run else None
 
     def current_phase(self) -> str | None:
         """The phase of the coming frame of the first busy slot (None when none is busy)."""
@@ -194,6 +202,8 @@ class SimulationPool:
         for run in self._running.values():
             run.recorder.share += wall / len(self._running)
         self.frames_run += 1
+        if self.frames_run > 2:      # the first frames load kernels and capture CUDA graphs
+            self._recent.append(wall)
         self.cloth_frames += len(self._running)
         self.step_time += runner.step_time
         self.wall += wall

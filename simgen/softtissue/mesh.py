@@ -11,7 +11,7 @@ tetrahedra the right way round. A body vertex is carried by the tetrahedron that
 (barycentric weights; the few just outside fTetWild's envelope by the nearest one, clamped).
 
 The bundled open body has its mesh in ``simgen/softtissue/data``; another body (a user's SMPL
-file) gets one with ``simgen softtissue mesh``, which the simulation then loads: the GPU machine
+file) gets one with ``simgen body flesh-mesh``, which the simulation then loads: the GPU machine
 needs no mesher.
 """
 
@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import os
 import tempfile
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -88,7 +89,7 @@ class FleshMesh:
                 if missing:
                     raise InputError(f"{path}: not a flesh mesh (no {', '.join(missing)})")
                 return cls(**{k: np.asarray(d[k]) for k in _FIELDS}, body_hash=str(d["body_hash"]))
-        except (OSError, ValueError) as exc:
+        except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
             raise InputError(f"{path}: cannot read the flesh mesh ({exc})") from None
 
 
@@ -99,7 +100,7 @@ def flesh_mesh(body, path=None) -> FleshMesh:
         path = BUNDLED / f"{body.name}_flesh.npz"
         if not path.exists():
             raise InputError(f"no flesh mesh for body {body.name!r}: make one on a CPU machine with "
-                             f"`simgen softtissue mesh --body {body.name} --out FILE` and pass it")
+                             f"`simgen body flesh-mesh --body BODY_FILE --out FILE` and pass it")
     mesh = FleshMesh.load(path)
     if mesh.body_hash != body.hash:
         raise InputError(f"{path}: the flesh mesh was made for another body model (hash {mesh.body_hash[:12]}, "
@@ -116,7 +117,8 @@ def _tetrahedralize(vertices, faces, edge: float, quiet: bool):
 
     v = np.array(vertices, dtype=np.float64)
     f = np.array(faces, dtype=np.int32)
-    # fTetWild writes a scratch file into the working folder: give it a temporary one.
+    # fTetWild writes a scratch file into the working folder: give it a temporary one (the process's
+    # working folder changes meanwhile: not for threads).
     here = os.getcwd()
     with tempfile.TemporaryDirectory(prefix="simgen-tetwild-") as scratch:
         os.chdir(scratch)

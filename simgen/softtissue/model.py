@@ -81,7 +81,7 @@ class FleshModel:
         self.rest = [np.asarray(x, dtype=np.float64) for x in rest]
         self.pinned = [np.asarray(q, dtype=bool) for q in pinned]
         self.mass, bms, vols = [], [], []
-        self.flipped = []
+        self.flipped, self.inv_rest_host = [], []
         for k, x in enumerate(self.rest):
             bm, vol = rest_shape(x, self.tets_host)
             # A sliver that the shape blend turned over keeps a positive stiffness (V B^T D B, V > 0).
@@ -90,6 +90,7 @@ class FleshModel:
             mass = np.zeros(len(x))
             np.add.at(mass, self.tets_host.ravel(), np.repeat(p.density * vol / 4.0, 4))
             self.mass.append(mass)
+            self.inv_rest_host.append(bm)
             bms.append(bm)
             vols.append(vol)
         self._upload(np.concatenate(bms), np.concatenate(vols), device)

@@ -54,11 +54,14 @@ class FleshParams:
 
     def __post_init__(self) -> None:
         validate(self, "soft-tissue")
+        from simgen.errors import InputError
+
         steps = self.rate / self.fps
         if abs(steps - round(steps)) > 1e-9:
-            from simgen.errors import InputError
-
             raise InputError(f"soft-tissue rate ({self.rate:g}/s) must be a multiple of fps ({self.fps:g}/s)")
+        if not self.lowpass < 0.5 * self.rate:
+            raise InputError(f"soft-tissue lowpass ({self.lowpass:g} Hz) must be below half the rate "
+                             f"({0.5 * self.rate:g} Hz)")
 
     def young(self, region: str) -> float:
         """Young's modulus [Pa] of a region of :data:`REGIONS`."""

@@ -3,20 +3,22 @@
 The flesh's nodes live in the unposed frame: node i at rest X_i (the shaped template) goes to
 x_i = M_i (X_i + u_i) + t_i in the world, with (M_i, t_i) = sum_j w_ij A_j the body's blended
 skinning transform (the same linear blend skinning as the skin's), so u is what the rig does not
-explain and nothing is counted twice. Newton's law in the world, m x'' = M f_int(u) + m g, seen from
-the moving frame and linearised in u, is
+explain and nothing is counted twice. Newton's law in the world, m x'' = R_i f_int(u) + m g, seen
+from the node's moving frame (R_i: the rotation of M_i, its polar factor) and linearised in u, is
 
-    m u'' + C u' + K u = m M_i^-1 (g - a_i),   a_i = sum_j w_ij A_j''(X_i)
+    m u'' + C u' + K u = m R_i^T (g - a_i),   a_i = sum_j w_ij A_j''(X_i)
 
 with a_i the rig's acceleration of the node: the skeleton drives the flesh through its
 acceleration and its orientation against gravity. Left out are the frame's inertial forces on u
 itself (centrifugal, Coriolis, Euler: of order omega^2 |u| and 2 omega |u'|), a few per cent of
-gravity on the torso for |u| of centimetres.
+gravity on the torso for |u| of centimetres, and M_i's departure from a rotation near bent joints
+(the linear blend's shrinkage), which u does not see.
 
 The skeleton's transforms A_j(t) are the clip resampled at ``params.rate`` (240 Hz), low-passed
 with a zero-phase 4th-order Butterworth at ``params.lowpass`` (12 Hz) entry by entry (on what a
-straight line between the clip's ends leaves, so uniform motion stays uniform), and differenced
-twice (central differences). The simulation starts at the static equilibrium of its
+straight line between the clip's ends leaves, so uniform motion stays uniform, and continued past
+the ends by cubics so that the filter's start-up stays outside the clip: :func:`_lowpass`), and
+differenced twice (central differences). The simulation starts at the static equilibrium of its
 first step and outputs u at the body's vertices (the mesh's embedding) at ``params.fps`` (60):
 SoftSMPL's Delta, the displacement in the unposed frame.
 """
@@ -84,15 +86,20 @@ def _rig_force(rest: wp.array(dtype=wp.vec3), weights: wp.array(dtype=wp.float32
             acc += w * wp.vec3(d[0, 0] * x[0] + d[0, 1] * x[1] + d[0, 2] * x[2] + d[0, 3],
                                d[1, 0] * x[0] + d[1, 1] * x[1] + d[1, 2] * x[2] + d[1, 3],
                                d[2, 0] * x[0] + d[2, 1] * x[1] + d[2, 2] * x[2] + d[2, 3])
-    f[i] = mass[i] * (wp.inverse(frame) * (wp.vec3(0.0, -gravity, 0.0) - acc))
+    # The rotation of the blended transform (its polar factor): near a bent joint the blend is no
+    # rotation, and its inverse would scale the load by 1 / sigma_min.
+    U = wp.mat33()
+    sigma = wp.vec3()
+    V = wp.mat33()
+    wp.svd3(frame, U, sigma, V)
+    rot = U * wp.transpose(V)
+    f[i] = mass[i] * (wp.transpose(rot) * (wp.vec3(0.0, -gravity, 0.0) - acc))
 
 
 def skeleton_tracks(body, clip, betas: np.ndarray, params: FleshParams) -> tuple[np.ndarray, np.ndarray, object]:
     """The joint transforms A (S, N, 24, 4, 4) and their second time derivative [1/s^2] at
     ``params.rate``, low-passed before differencing (module doc), for each shape of betas (N, B);
     and the clip at that rate."""
-    from scipy.signal import butter, filtfilt
-
     from simgen.body.model import skinning_transforms
     from simgen.motion.ops import resample
 
@@ -101,13 +108,7 @@ def skeleton_tracks(body, clip, betas: np.ndarray, params: FleshParams) -> tuple
     if S < 3:
         raise InputError(f"motion {clip.name!r} is too short for the soft-tissue simulation ({clip.num_frames} frames)")
     A = np.stack([skinning_transforms(body, b, fine.poses, fine.trans) for b in np.atleast_2d(betas)], axis=1)
-    bb, aa = butter(4, params.lowpass / (0.5 * params.rate))
-    if S > 3 * max(len(aa), len(bb)):
-        # The filter acts on what a straight line through the ends leaves, so a uniform motion (no
-        # acceleration) stays exactly uniform whatever the filter's start and end transients.
-        ramp = np.linspace(0.0, 1.0, S).reshape((S,) + (1,) * (A.ndim - 1))
-        line = A[:1] + ramp * (A[-1:] - A[:1])
-        A = line + filtfilt(bb, aa, A - line, axis=0, padtype="odd", padlen=min(S - 1, 3 * max(len(aa), len(bb))))
+    A = _lowpass(A, params.lowpass, params.rate)
     h = 1.0 / params.rate
     dd = np.zeros_like(A)
     dd[1:-1] = (A[2:] - 2.0 * A[1:-1] + A[:-2]) / (h * h)
@@ -115,8 +116,33 @@ def skeleton_tracks(body, clip, betas: np.ndarray, params: FleshParams) -> tuple
     return A, dd, fine
 
 
+def _lowpass(A: np.ndarray, cutoff: float, rate: float) -> np.ndarray:
+    """A (S, ...) sampled at ``rate`` [1/s], low-passed along time at ``cutoff`` [Hz]: a zero-phase
+    4th-order Butterworth on what the straight line between the ends leaves (a uniform motion stays
+    exactly uniform), continued past each end by the cubic of its first (last) 0.1 s, so that the
+    filter's start-up falls outside the clip and the ends keep their velocity, acceleration and jerk."""
+    from scipy.signal import butter, filtfilt
+
+    S = len(A)
+    ramp = np.linspace(0.0, 1.0, S).reshape((S,) + (1,) * (A.ndim - 1))
+    line = A[:1] + ramp * (A[-1:] - A[:1])
+    r = (A - line).reshape(S, -1)
+    pad = int(round(3.0 * rate / cutoff))
+    n = min(S, max(3, int(round(0.1 * rate))))
+    t = np.arange(n) / rate
+    V = np.stack([np.ones(n), t, t * t, t ** 3], axis=1)
+    head = np.linalg.lstsq(V, r[:n], rcond=None)[0]
+    tail = np.linalg.lstsq(V, r[::-1][:n], rcond=None)[0]
+    ext = -np.arange(pad, 0, -1) / rate                                   # times before the first sample
+    W = np.stack([np.ones(pad), ext, ext ** 2, ext ** 3], axis=1)
+    padded = np.concatenate([W @ head, r, (W @ tail)[::-1]])
+    bb, aa = butter(4, cutoff / (0.5 * rate))
+    out = filtfilt(bb, aa, padded, axis=0, padtype=None)[pad:pad + S]
+    return line + out.reshape(A.shape)
+
+
 def rig_forces(model: FleshModel, weights: wp.array, A: wp.array, dd: wp.array, step: int, out: wp.array) -> wp.array:
-    """out = m M^-1 (g - a) per node (module doc) at step ``step`` of the uploaded tracks."""
+    """out = m R^T (g - a) per node (module doc) at step ``step`` of the uploaded tracks."""
     N = model.num_instances
     wp.launch(_rig_force, dim=model.total_nodes, device=model.device,
               inputs=[model.rest_positions, weights, model.num_nodes, model.node_instance, A, dd, step * N * 24,
@@ -126,14 +152,11 @@ def rig_forces(model: FleshModel, weights: wp.array, A: wp.array, dd: wp.array, 
 
 def _min_det(model: FleshModel, u: np.ndarray) -> np.ndarray:
     """Smallest det(I + grad u) over each instance's tetrahedra (> 0: none inverted), (N,)."""
-    from simgen.softtissue.elastic import rest_shape
-
     t = model.tets_host
     out = []
-    for k, x in enumerate(model.rest):
+    for k, bm in enumerate(model.inv_rest_host):
         uk = u[k]
         ds = np.stack([uk[t[:, 1]] - uk[t[:, 0]], uk[t[:, 2]] - uk[t[:, 0]], uk[t[:, 3]] - uk[t[:, 0]]], axis=2)
-        bm, _ = rest_shape(x, t)
         out.append(float(np.linalg.det(np.eye(3) + ds @ bm).min()))
     return np.array(out)
 
@@ -196,7 +219,8 @@ def simulate_softtissue(body, clip, betas=None, params: FleshParams | None = Non
     out = []
     for k in range(N):
         meta = {"source": "simgen.softtissue simulation", "params": asdict(p), "layer_m": model.layer[k],
-                "extra_pins": int(model.extra_pins[k]), "cg_iterations_max": int(cg), "min_det": float(min_det[k]),
+                "extra_pins": int(model.extra_pins[k]), "cg_iterations_max": int(cg),
+                "cg_capped": int(solver.cg_capped), "min_det": float(min_det[k]),
                 "mesh": {"nodes": mesh.num_nodes, "tets": mesh.num_tets, "pinned": int(model.pinned[k].sum())}}
         out.append(SoftTissueResult(name=f"{names[k]}_{clip.name}", subject=names[k], motion=clip.name,
                                       betas=b[k], poses=poses, trans=out_clip.trans[:frames], fps=p.fps,

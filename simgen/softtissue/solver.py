@@ -121,7 +121,8 @@ class FleshSolver:
     """State and integrator of a :class:`FleshModel`.
 
     ``u`` [m], ``v`` [m/s], ``a`` [m/s^2]: (N*Nn,) wp.vec3, the displacement in the unposed frame and
-    its rates; ``cg_iterations``: PCG iterations of the last solve (the largest over instances).
+    its rates; ``cg_iterations``: PCG iterations of the last solve (the largest over instances, in
+    rounds of 8); ``cg_capped``: solves that reached ``params.cg_iterations`` unconverged.
     """
 
     def __init__(self, model: FleshModel) -> None:
@@ -135,6 +136,7 @@ class FleshSolver:
         wp.launch(stiffness_diagonal, dim=m.num_tets_total, device=dev,
                   inputs=[m.tets, m.inv_rest, m.volume, m.mu, m.lam], outputs=[self.diag])
         self.cg_iterations = 0
+        self.cg_capped = 0      # solves that stopped at params.cg_iterations (checked every 8)
 
     # -- operators ----------------------------------------------------------------------------------
     def stiffness(self, x: wp.array, out: wp.array) -> wp.array:
@@ -187,6 +189,8 @@ class FleshSolver:
                 it += 1
             if np.all(self._dot(t["r"], t["r"], d["rr"]).numpy() <= p.cg_tolerance ** 2 * r0):
                 break
+        else:
+            self.cg_capped += 1
         self.cg_iterations = it
 
     # -- integration --------------------------------------------------------------------------------
@@ -206,8 +210,7 @@ class FleshSolver:
         k_probe = self.stiffness(t["probe"], t["kx"])
         wp.launch(_step_rhs, dim=n, device=dev, inputs=[f, t["v_pred"], k_probe, m.node_mass, m.node_pinned, a_m],
                   outputs=[t["rhs"]])
-        rhs = wp.clone(t["rhs"])
-        self.solve(rhs, self.a, 1.0 + 0.5 * h * a_m, 0.5 * h * a_k + 0.25 * h * h)
+        self.solve(t["rhs"], self.a, 1.0 + 0.5 * h * a_m, 0.5 * h * a_k + 0.25 * h * h)
         wp.launch(_correct, dim=n, device=dev, inputs=[t["u_pred"], t["v_pred"], self.a, h], outputs=[self.u, self.v])
 
     def energy(self, f: np.ndarray | None = None) -> np.ndarray:
