@@ -166,6 +166,24 @@ def test_simulation_error_is_raised_after_the_jobs_being_written(tmp_path, monke
     assert check_dataset(out).passed
 
 
+def test_a_job_whose_ground_truth_fails_fails_alone(tmp_path, monkeypatch):
+    """An exception while one job's node is computed (not a store write) fails that job, attempt
+    after attempt, and the pool writes the others."""
+    real = ex._frame_stats
+
+    def broken(result, faces, rest_inverse):
+        if result.metadata["key"] == "sequence:walk_fast__b1p2":
+            raise FloatingPointError("a broken statistic (injected)")
+        return real(result, faces, rest_inverse)
+
+    monkeypatch.setattr(ex, "_frame_stats", broken)
+    out = tmp_path / "s"
+    (rep,) = generate_dataset(micro(batch_size=2), out=str(out))
+    assert rep.written == 1 and list(rep.failed) == ["sequence:walk_fast__b1p2"]
+    assert "FloatingPointError" in rep.failed["sequence:walk_fast__b1p2"]
+    assert open_dataset(out).sequence_ids() == ["walk_fast__zero"] and not _writer_threads()
+
+
 def test_a_pool_is_freed_when_its_task_ends(tmp_path, monkeypatch):
     """Nothing keeps a finished pool (and its device memory) alive: the next pool is sized from the
     free memory."""
