@@ -76,3 +76,28 @@ def test_fit_report_measures_hem_and_sleeves(tmp_path):
         assert 0.0 <= row["hem_cling_frame0"] <= row["hem_cling_max"] <= 1.0
         # The sleeves hang off the arm by centimetres, not metres (measured against the posed body).
         assert 0.0 < row["sleeve_gap_frame45_m"] <= row["sleeve_gap_max_m"] < 0.3
+
+
+def _run_json(name: str, *args: str, out: Path) -> dict:
+    env = {**os.environ, "PYTHONPATH": str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    proc = subprocess.run([sys.executable, str(REPO / "scripts" / name), *args, "--json", str(out)],
+                          capture_output=True, text=True, env=env, timeout=900)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    return json.loads(out.read_text())
+
+
+def test_cg_profile_takes_a_newton_system_out(tmp_path):
+    r = _run_json("cg_profile.py", "--device", "cpu", "--garment", "tshirt_1k", "--frames", "1",
+                  out=tmp_path / "cg.json")
+    assert r["solves"] > 0 and 0 < r["iterations"]["mean"] <= r["cap_per_newton_iteration"]
+    assert r["condition_block_jacobi"] > 1 and r["scipy_block_jacobi_uncapped"] > 0
+    for key in ("scipy_symmetric_gauss_seidel", "scipy_ilut", "scipy_block_jacobi_warm_start"):
+        assert r[key] >= 1
+
+
+def test_softtissue_validate_reports_regions_and_modes(tmp_path):
+    r = _run_json("softtissue_validate.py", "--device", "cpu", "--clips", "jump:0:0.1", "--shapes", "0",
+                  out=tmp_path / "st.json")
+    shape = r["clips"]["jump:0:0.1"]["shapes"]["0.0"]
+    assert shape["min_det"] > 0 and shape["peak_m"]["head"] == 0.0 and shape["peak_m"]["belly"] > 0
+    assert 2.0 <= r["first_mode_hz"]["belly"] <= 15.0
