@@ -53,6 +53,7 @@ def main(argv=None) -> int:
     p.add_argument("--device", default="cpu")
     p.add_argument("--frames", type=int, default=3, help="output frames of walk after the protocol")
     p.add_argument("--garment", default="tshirt", help="garment (the preset's: tshirt)")
+    p.add_argument("--cold", action="store_true", help="no warm start (SolverConfig.cg_warm_start = false)")
     p.add_argument("--json")
     a = p.parse_args(argv)
 
@@ -72,12 +73,13 @@ def main(argv=None) -> int:
     spec = load_spec("thesis-tshirt")
     config = replace(spec.solver_config(), device=a.device, relax_frames=2, ramp_frames=5, rest_frames=2,
                      cuda_graph=False)
+    config = replace(config, solver=replace(config.solver, cg_warm_start=not a.cold))
     cap = config.solver.cg_iterations
     solves, systems = [], []
     real = BlockJacobiPCG.solve
 
-    def recorded(self, hessian, rhs, x):
-        real(self, hessian, rhs, x)
+    def recorded(self, hessian, rhs, x, guess=None):
+        real(self, hessian, rhs, x, guess=guess)
         solves.append((self.iterations(), self.residual_ratio()))
         m = self.model
         values = getattr(hessian, "values", hessian).numpy().astype(np.float64)
@@ -109,7 +111,7 @@ def main(argv=None) -> int:
     Dinv = sp.block_diag(blocks, format="csr")[idx][:, idx]
     tol = config.solver.cg_tolerance
     result = {"benchmark": "cg_profile", "date": time.strftime("%Y-%m-%d"), "device": a.device,
-              "commit": _commit(), "garment": a.garment, "garment_vertices": int(n), "free_dofs": int(len(idx)), "cap_per_newton_iteration": int(cap),
+              "commit": _commit(), "garment": a.garment, "warm_start": not a.cold, "garment_vertices": int(n), "free_dofs": int(len(idx)), "cap_per_newton_iteration": int(cap),
               "tolerance": tol, "solves": int(len(its)), "sim_wall_s": wall,
               "iterations": {"mean": float(its.mean()), "median": float(np.median(its)), "max": int(its.max()),
                              "share_at_cap": float(np.mean(its >= cap)),

@@ -92,6 +92,36 @@ def test_block_jacobi_pcg_matches_dense_solve_with_pins():
     assert 1 <= pcg.iterations() < 300 and pcg.residual_ratio() <= 1e-12
 
 
+def test_pcg_warm_start_converges_to_the_same_answer_with_fewer_iterations():
+    """Started from a guess, PCG reaches the dense answer, its stopping test stays relative to the
+    right-hand side (a guess near the answer stops at once, with x = the guess), pinned entries of
+    the guess are ignored, and a zero right-hand side gives x = 0 whatever the guess."""
+    v, f = grid(8, 8, 0.1, 0.1)
+    v = v + 0.01 * np.random.default_rng(3).normal(size=v.shape)
+    pinned = [0, 7]
+    model = ClothModel.from_mesh(v, f, "cotton", pinned=pinned, device=DEVICE, dtype=wp.float64)
+    H = cloth_hessian(model, wp.array(v, dtype=wp.vec3d, device=DEVICE))
+    pcg = BlockJacobiPCG(model, max_iterations=500, tolerance=1e-10)
+    pcg.apply_constraints(H)
+    rng = np.random.default_rng(4)
+    b = rng.normal(size=v.shape)
+    bw = wp.array(b, dtype=wp.vec3d, device=DEVICE)
+    out = model.new_gradient()
+    pcg.solve(H, bw, out)
+    cold, exact = pcg.iterations(), out.numpy().copy()
+    near = exact + 1e-4 * np.abs(exact).max() * rng.normal(size=exact.shape)
+    near[pinned] = 5.0                                             # ignored: pinned entries are 0
+    pcg.solve(H, bw, out, guess=wp.array(near, dtype=wp.vec3d, device=DEVICE))
+    got = out.numpy()
+    assert np.abs(got - exact).max() <= 1e-7 * np.abs(exact).max() and not got[pinned].any()
+    assert 1 <= pcg.iterations() < cold and pcg.residual_ratio() <= 1e-10
+    loose = BlockJacobiPCG(model, max_iterations=500, tolerance=1e-2)
+    loose.solve(H, bw, out, guess=wp.array(exact, dtype=wp.vec3d, device=DEVICE))
+    assert loose.iterations() == 0 and np.allclose(out.numpy(), exact)
+    pcg.solve(H, model.new_gradient(), out, guess=wp.array(near, dtype=wp.vec3d, device=DEVICE))
+    assert not out.numpy().any()
+
+
 @pytest.mark.parametrize("dynamic", [True, False])
 def test_batched_pcg_solves_each_instance_and_stops_at_max_iterations(dynamic):
     """Instances of unequal sizes (smaller and larger than a reduction block, an instance boundary

@@ -49,6 +49,9 @@ class SolverConfig:
     cg_iterations: int = setting(50, low=1, doc="PCG iterations launched per Newton iteration (work stops "
                                                  "once converged)")
     cg_tolerance: float = setting(1.0e-3, low=0.0, doc="[-] relative PCG tolerance on the preconditioned residual")
+    cg_warm_start: bool = setting(True, doc="start each Newton iteration's PCG from the same iteration's step of "
+                                            "the previous substep (the tolerance stays relative to the right-hand "
+                                            "side)")
     line_search: bool = setting(False, doc="backtrack alpha = 1, 1/2, ... on each instance's incremental potential")
     line_search_steps: int = setting(8, low=1, doc="trials of the line search")
     armijo: float = setting(1.0e-4, low=0.0, inclusive=False, doc="[-] the line search's Armijo constant")

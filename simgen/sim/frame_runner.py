@@ -171,7 +171,8 @@ class FrameRunner:
 
     def _start_placed(self) -> None:
         """Put the jobs placed since the last frame into their slots: garment, pins, body (moved
-        there at rest, no velocity), and friction's lagged contacts of every slot taken again."""
+        there at rest, no velocity), no warm-start guesses, and friction's lagged contacts of every
+        slot taken again."""
         if not self._placed:
             return
         s = self.setup
@@ -196,6 +197,7 @@ class FrameRunner:
                                 wp.array(self._tr_now, dtype=wp.vec3, device=dev))
         collider.update()                  # a teleport: the other slots' bodies are posed where they are
         s.solver.take_contacts(state, collider)
+        s.solver.forget_steps(list(self._placed))
         self._placed = {}
 
     # -- the frame and its retries ------------------------------------------------------------------
@@ -261,9 +263,9 @@ class FrameRunner:
     def _retry(self, reshape: bool, level: int, eager: bool, failing: list) -> np.ndarray:
         """Redo the frame from its start for ``failing`` only, at 2^level solver steps per substep.
 
-        The other instances are held: restored afterwards to the state they reached, and in between
-        pinned at the frame start with zero velocity and no body, so they neither move nor change
-        the retried ones.
+        The other instances are held: restored afterwards to the state (and the solver's warm-start
+        guesses) they reached, and in between pinned at the frame start with zero velocity and no
+        body, so they neither move nor change the retried ones.
         """
         s = self.setup
         model, state, collider = s.model, s.state, s.collider
@@ -278,12 +280,17 @@ class FrameRunner:
         self._held.assign(hold)
         wp.launch(_hold_instances, dim=model.num_vertices, device=s.device,
                   inputs=[pinned, model.vertex_instance, self._held, model.vertex_pinned, state.velocities])
+        guesses = [wp.clone(g) for g in s.solver.step_guesses]
         bad = self._attempt(reshape, level, eager)
         collider.mesh_ids.assign(ids)
         wp.copy(model.vertex_pinned, pinned)
         wp.launch(_select_instances, dim=model.num_vertices, device=s.device,
                   inputs=[self._accepted.positions, self._accepted.velocities, model.vertex_instance, self._held,
                           state.positions, state.velocities])
+        # The held instances keep their warm-start guesses too (pinned, the retry zeroed them).
+        for saved, g in zip(guesses, s.solver.step_guesses):
+            wp.launch(_select_instances, dim=model.num_vertices, device=s.device,
+                      inputs=[saved, saved, model.vertex_instance, self._held, g, g])
         return bad
 
     def _freeze(self, instances: list, where: list, message: str) -> None:

@@ -8,8 +8,10 @@ Pinned (kinematic) vertices are removed from the system in place before the solv
 columns are zeroed, their diagonal block set to the identity and their right-hand side to zero,
 so their update is exactly 0 and the free vertices do not feel them through H.
 
+A solve starts from 0 or from a guess (a warm start: r = b - H x0 by one more sliced-ELL product).
 The iteration loop is ``warp.capture_while`` on an on-device "running" flag, cleared once every
-instance's preconditioned residual r.z has fallen below tol^2 times its initial value or after
+instance's preconditioned residual r.z has fallen below tol^2 times the right-hand side's b.M^-1 b
+(with no guess, the initial residual's) or after
 ``max_iterations``: inside a CUDA graph it is a conditional node, so a captured solve launches only
 the iterations it needs and reads nothing back; outside a graph it reads the flag once per
 iteration. With ``dynamic=False`` the solve launches a fixed ``max_iterations`` sequence instead,
@@ -135,6 +137,61 @@ def pcg_kernels(scalar) -> SimpleNamespace:
             value = wp.dot(b, zi)
         # One call site for every thread of the block: the tile sum synchronises the block.
         block_add(rz, vertex_instance, block, lane, i, n, value)
+
+    @wp.kernel(enable_backward=False, module=mod)
+    def warm_residual(
+        slice_starts: wp.array(dtype=wp.int32),
+        slice_widths: wp.array(dtype=wp.int32),
+        ell_columns: wp.array(dtype=wp.int32),
+        ell_values: wp.array(dtype=mat33),
+        vertex_instance: wp.array(dtype=wp.int32),
+        pinned: wp.array(dtype=wp.int32),
+        rhs: wp.array(dtype=vec3),
+        guess: wp.array(dtype=vec3),
+        inv_diag: wp.array(dtype=mat33),
+        x: wp.array(dtype=vec3),
+        r: wp.array(dtype=vec3),
+        z: wp.array(dtype=vec3),
+        rz: wp.array(dtype=scalar),
+        done: wp.array(dtype=wp.int32),
+        n: int,
+    ):
+        # Start from x = guess (0 at pinned vertices): r = b - H x, z = D^-1 r, rz = r.z per instance.
+        # An instance already done (a zero right-hand side) keeps x = 0.
+        block, lane = wp.tid()
+        i = block * wp.block_dim() + lane
+        value = zero
+        if i < n and done[vertex_instance[i]] == 0:
+            g = guess[i]
+            b = rhs[i]
+            if pinned[i] != 0:
+                g = vec3()
+                b = vec3()
+            acc = vec3()
+            s = i // ELL_SLICE
+            first = slice_starts[s] + i % ELL_SLICE
+            for j in range(slice_widths[s]):
+                e = first + j * ELL_SLICE
+                c = ell_columns[e]
+                if pinned[c] == 0:
+                    acc += ell_values[e] * guess[c]
+            ri = b - acc
+            if pinned[i] != 0:
+                ri = vec3()
+            x[i] = g
+            r[i] = ri
+            zi = inv_diag[i] * ri
+            z[i] = zi
+            value = wp.dot(ri, zi)
+        block_add(rz, vertex_instance, block, lane, i, n, value)
+
+    @wp.kernel(enable_backward=False, module=mod)
+    def warm_check(rz: wp.array(dtype=scalar), rz0: wp.array(dtype=scalar), tol2: scalar,
+                   done: wp.array(dtype=wp.int32)):
+        # An instance whose guess already meets the tolerance (relative to its right-hand side) is done.
+        k = wp.tid()
+        if rz[k] <= tol2 * rz0[k]:
+            done[k] = 1
 
     @wp.kernel(enable_backward=False, module=mod)
     def start(
@@ -293,7 +350,8 @@ def pcg_kernels(scalar) -> SimpleNamespace:
             if flag == 0 and count < max_iterations:
                 running[0] = 1
 
-    return SimpleNamespace(constrain=constrain, gather_ell=gather_ell, setup=setup, start=start, start_all=start_all,
+    return SimpleNamespace(constrain=constrain, gather_ell=gather_ell, setup=setup, warm_residual=warm_residual,
+                           warm_check=warm_check, start=start, start_all=start_all,
                            direction_spmv_dot=direction_spmv_dot, update_xr=update_xr, control=control)
 
 
@@ -302,7 +360,8 @@ class BlockJacobiPCG:
 
     model: the cloth model (its BSR pattern, diagonal slots and pinned flags are used).
     max_iterations: the most iterations per solve. tolerance: relative tolerance on the
-      preconditioned residual, sqrt(r.M^-1 r / r0.M^-1 r0) <= tolerance.
+      preconditioned residual, sqrt(r.M^-1 r / b.M^-1 b) <= tolerance (b: the right-hand side; with
+      no guess, the initial residual).
     dynamic: loop with ``warp.capture_while`` until converged (a conditional node in a CUDA graph);
       False launches a fixed ``max_iterations`` sequence (work stops on the device once converged).
 
@@ -363,13 +422,15 @@ class BlockJacobiPCG:
         wp.launch(self.kernels.constrain, dim=m.nnz, device=m.device,
                   inputs=[m.bsr_rows, m.bsr_columns, m.vertex_pinned, values])
 
-    def solve(self, hessian, rhs, x) -> None:
-        """Solve hessian x = rhs approximately; x is overwritten (the iteration starts at 0).
+    def solve(self, hessian, rhs, x, guess=None) -> None:
+        """Solve hessian x = rhs approximately; x is overwritten.
 
         hessian: the model's BsrMatrix (or its (nnz,) mat33 values), SPD after
           :meth:`apply_constraints` (call that first when the model has pinned vertices).
         rhs: (V,) vec3, e.g. the negative gradient [J/m]; pinned entries are treated as 0.
         x: (V,) vec3 output, e.g. the Newton step [m]; exactly 0 at pinned vertices.
+        guess: (V,) vec3 where the iteration starts (a warm start), or None for 0. The stopping test
+          is relative to the right-hand side either way: r.M^-1 r <= tolerance^2 b.M^-1 b.
         """
         m, k = self.model, self.kernels
         n, dev = m.num_vertices, m.device
@@ -383,6 +444,13 @@ class BlockJacobiPCG:
             self._rz, n])
         wp.launch(k.start, dim=ni, device=dev,
                   inputs=[self._rz, self._rz0, self._done, self._pq, self._rz_new, self._beta])
+        if guess is not None:
+            self._rz.zero_()
+            wp.launch_tiled(k.warm_residual, dim=[self._blocks], block_dim=self._block, device=dev, inputs=[
+                self.slice_starts, self.slice_widths, self.ell_columns, self.ell_values, vi, m.vertex_pinned, rhs,
+                guess, self.inv_diag, x, self.r, self.z, self._rz, self._done, n])
+            wp.launch(k.warm_check, dim=ni, device=dev,
+                      inputs=[self._rz, self._rz0, self.tolerance * self.tolerance, self._done])
         wp.launch(k.start_all, dim=1, device=dev,
                   inputs=[self._done, ni, self._iterations, self._all_done, self._running])
         if self.dynamic:
@@ -414,7 +482,7 @@ class BlockJacobiPCG:
         return int(self._iterations.numpy()[0])
 
     def residual_ratio(self) -> float:
-        """The largest per-instance sqrt(r.M^-1 r / r0.M^-1 r0) at the end of the last solve (host sync)."""
+        """The largest per-instance sqrt(r.M^-1 r / b.M^-1 b) at the end of the last solve (host sync)."""
         rz, rz0 = self._rz.numpy().astype(float), self._rz0.numpy().astype(float)
         ratios = [(max(a, 0.0) / b) ** 0.5 if b > 0 else 0.0 for a, b in zip(rz, rz0)]
         return max(ratios)

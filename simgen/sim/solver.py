@@ -247,6 +247,8 @@ class ImplicitSolver:
                                 or np.any(m.host.vertex_damping_mass))
         self._backups = [m.state() for _ in range(cfg.max_retries + 1)] if cfg.guard else []
         self._work = m.state()
+        # The last substep's step of each Newton iteration: the next substep's first guesses.
+        self.step_guesses = [m.new_gradient() for _ in range(cfg.newton_iterations)] if cfg.cg_warm_start else []
         self._cg_total = wp.zeros(1, dtype=wp.int64, device=dev)
         self._depth = wp.zeros(ni, dtype=T.scalar, device=dev)
         self._depth_max = wp.zeros(ni, dtype=T.scalar, device=dev)
@@ -496,7 +498,10 @@ class ImplicitSolver:
                 wp.copy(self.energy_start, self.energy)
             self.pcg.apply_constraints(self.hessian)
             # H d = g; the Newton update is x - d (pinned entries of d are exactly 0).
-            self.pcg.solve(self.hessian, self.gradient, self.step_dir)
+            guess = self.step_guesses[it] if self.step_guesses else None
+            self.pcg.solve(self.hessian, self.gradient, self.step_dir, guess=guess)
+            if guess is not None:
+                wp.copy(guess, self.step_dir)
             wp.launch(k.accumulate, dim=1, device=dev, inputs=[self.pcg.iteration_counter, self._cg_total])
             self._counts["newton_iterations"] += 1
             if cfg.line_search or (energy_test and it == 0):
@@ -557,6 +562,15 @@ class ImplicitSolver:
         update_contact_frame(self.model, state.positions, body.mesh_ids, self.config.contact, self.contact_frame,
                              part_masks=body.part_masks)
         self._frame_valid = True
+
+    def forget_steps(self, instances) -> None:
+        """Zero the warm-start guesses of ``instances`` (a slot that starts a new job)."""
+        starts = np.asarray(self.model.vertex_start)
+        for g in self.step_guesses:
+            a = g.numpy()
+            for i in instances:
+                a[starts[i]:starts[i + 1]] = 0.0
+            g.assign(a)
 
     def reset_contacts(self) -> None:
         """Forget the lagged friction contacts, e.g. before stepping a state that is not the output
