@@ -269,7 +269,7 @@ def test_solver_table_covers_solver_config():
              "line_search": True, "line_search_steps": 3, "armijo": 1e-3, "floor": -1.0,
              "strain_limit": 0.3, "strain_limit_iterations": 4, "project": False, "projection_offset": 1e-4,
              "constraint_rounds": 3, "guard": False, "max_retries": 2, "max_speed": 20.0, "divergence_ratio": 5.0,
-             "guard_energy": False}
+             "guard_energy": False, "cg_warm_start": False}
     assert set(every) == {k for k, s in solver_settings().items() if not s.nested}
     solver = parse_spec(minimal(solver=every)).solver_options()
     assert all(getattr(solver, k) == v for k, v in every.items())
