@@ -33,7 +33,7 @@ from simgen.sim.recorder import JobRecorder, measure_frame
 __all__ = ["SimulationPool"]
 
 
-@dataclass
+@dataclass(eq=False)   # found in the queue by identity (fields hold arrays and clips)
 class _Queued:
     tag: object
     job: SimulationJob
@@ -43,7 +43,7 @@ class _Queued:
     betas: np.ndarray
 
 
-@dataclass
+@dataclass(eq=False)
 class _Running:
     tag: object
     schedule: JobSchedule
