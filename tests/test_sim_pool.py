@@ -5,31 +5,17 @@ velocities and friction contacts start fresh, and its batch mates are not distur
 Tiny on purpose: the 1k-triangle T-shirt, 2 + 2 + 1 protocol frames, 3-4 output frames, 3 substeps.
 """
 
-import os
 
 import numpy as np
 import pytest
 import warp as wp
 
-from simgen import body as body_pkg
 from simgen.errors import InputError
-from simgen.garment.library import load_garment
-from simgen.motion.library import load_motion
-from simgen.motion.ops import trim
-from simgen.sim import SimulationConfig, SimulationJob, SimulationPool, SimulationResult, simulate
+from simgen.sim import SimulationJob, SimulationPool, SimulationResult, simulate
+
+from test_sim_batch import CFG, inputs  # noqa: F401  (tests/ is on sys.path under pytest; the same tiny inputs)
 
 wp.config.quiet = True
-DEVICE = os.environ.get("SIMGEN_TEST_DEVICE", "cpu")
-CFG = SimulationConfig(substeps=3, relax_frames=2, ramp_frames=2, rest_frames=1, device=DEVICE)
-
-
-@pytest.fixture(scope="module")
-def inputs():
-    body = body_pkg.load("open")
-    garment = load_garment("tshirt_1k", body=body)
-    walk = trim(load_motion("walk"), 2.0, 2.2)       # 7 frames at 30 fps
-    squat = trim(load_motion("squat"), 0.5, 0.6)     # 4 frames
-    return body, garment, walk, squat
 
 
 @pytest.fixture(scope="module")

@@ -65,6 +65,19 @@ def pcg_kernels(scalar) -> SimpleNamespace:
     zero = scalar(0.0)
     block_add = reduce_funcs(scalar).block_add
 
+    @wp.func(module=mod)
+    def ell_row(slice_starts: wp.array(dtype=wp.int32), slice_widths: wp.array(dtype=wp.int32),
+                ell_columns: wp.array(dtype=wp.int32), ell_values: wp.array(dtype=mat33), v: wp.array(dtype=vec3),
+                i: int):
+        # Row i of H v from the sliced-ELL copy of H.
+        acc = vec3()
+        s = i // ELL_SLICE
+        first = slice_starts[s] + i % ELL_SLICE
+        for j in range(slice_widths[s]):
+            e = first + j * ELL_SLICE
+            acc += ell_values[e] * v[ell_columns[e]]
+        return acc
+
     @wp.kernel(enable_backward=False, module=mod)
     def constrain(
         rows: wp.array(dtype=wp.int32),
@@ -167,15 +180,8 @@ def pcg_kernels(scalar) -> SimpleNamespace:
             if pinned[i] != 0:
                 g = vec3()
                 b = vec3()
-            acc = vec3()
-            s = i // ELL_SLICE
-            first = slice_starts[s] + i % ELL_SLICE
-            for j in range(slice_widths[s]):
-                e = first + j * ELL_SLICE
-                c = ell_columns[e]
-                if pinned[c] == 0:
-                    acc += ell_values[e] * guess[c]
-            ri = b - acc
+            # Pinned columns are zero after apply_constraints, so a pinned entry of the guess adds nothing.
+            ri = b - ell_row(slice_starts, slice_widths, ell_columns, ell_values, guess, i)
             if pinned[i] != 0:
                 ri = vec3()
             x[i] = g
@@ -247,12 +253,7 @@ def pcg_kernels(scalar) -> SimpleNamespace:
         if i < n:
             inst = vertex_instance[i]
             if done[inst] == 0:
-                acc = vec3()
-                s = i // ELL_SLICE
-                first = slice_starts[s] + i % ELL_SLICE
-                for j in range(slice_widths[s]):
-                    e = first + j * ELL_SLICE
-                    acc += ell_values[e] * z[ell_columns[e]]
+                acc = ell_row(slice_starts, slice_widths, ell_columns, ell_values, z, i)
                 b = beta[inst]
                 pi = z[i] + b * p[i]
                 qi = acc + b * q[i]
