@@ -30,11 +30,17 @@ MAX_TASK_RETRIES = 2
 def _run_pool_task(task, deadline):
     # Runs in a Ray worker: quiet Warp, then the same function as local execution. The deadline is
     # a wall-clock time fixed by the driver, so a task that waits for a GPU or is retried keeps it.
+    import ray
+
     from simgen._warp_log import quiet_warp
     from simgen.dataset.execute import run_pool_task
 
     quiet_warp()
-    return run_pool_task(task, deadline=deadline)
+    result = run_pool_task(task, deadline=deadline)
+    ctx = ray.get_runtime_context()
+    result["worker"] = {"node": ctx.get_node_id()[:12], "pid": os.getpid(),
+                        "gpus": [str(g) for g in ctx.get_accelerator_ids().get("GPU", [])]}
+    return result
 
 
 class RayExecutor:

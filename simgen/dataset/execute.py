@@ -379,6 +379,7 @@ def run_pool_task(task: BatchTask, *, progress=None, on_outcome=None, deadline: 
     """
     from simgen.sim import SimulationJob, SimulationPool
 
+    clock = {"start": time.time()}
     _injected_fault()
     quiet_warp()
     spec = task.spec
@@ -400,8 +401,10 @@ def run_pool_task(task: BatchTask, *, progress=None, on_outcome=None, deadline: 
         else:
             todo.append(job)
     report = {"outcomes": outcomes, "error": None, "not_done": [], "abandoned_cloth_frames": 0, "slots": 0,
-              "wall": 0.0, "cloth_frames": 0, "step_s": 0.0, "write_s": 0.0, "write_wait": 0.0}
+              "wall": 0.0, "cloth_frames": 0, "step_s": 0.0, "write_s": 0.0, "write_wait": 0.0,
+              "clock": clock, "gpu_memory_high_bytes": None}
     if not todo:
+        clock["ready"] = clock["end"] = time.time()
         return report
     slots = min(pool_slots(spec, config.device, garment), len(todo))
     pool = SimulationPool(garment, body, slots, config, fps=spec.fps)
@@ -418,6 +421,7 @@ def run_pool_task(task: BatchTask, *, progress=None, on_outcome=None, deadline: 
 
     pool.accept = accept
     abandoned: list = []
+    clock["ready"] = time.time()
     try:
         while pool.busy or pool.queued:
             for job, res in pool.step():
@@ -436,12 +440,21 @@ def run_pool_task(task: BatchTask, *, progress=None, on_outcome=None, deadline: 
     finally:
         writes.close()
         pool.accept = None   # the closure holds the pool: free its device memory with the pool
+        clock["end"] = time.time()
     report.update(not_done=pool.refused + abandoned,
                   abandoned_cloth_frames=sum(job_cloth_frames(spec, [j]) for j in abandoned), slots=slots,
                   outcomes=outcomes + writes.outcomes, error=writes.error, wall=pool.wall,
                   cloth_frames=pool.cloth_frames, step_s=pool.step_time, write_s=writes.write_s,
-                  write_wait=writes.wait_s)
+                  write_wait=writes.wait_s, gpu_memory_high_bytes=_memory_high(config.device))
     return report
+
+
+def _memory_high(device: str) -> int | None:
+    if not str(device).startswith("cuda"):
+        return None
+    import warp as wp
+
+    return int(wp.get_mempool_used_mem_high(device))
 
 
 def _injected_fault() -> None:

@@ -71,14 +71,26 @@ class StoreReport:
     retry_simulate_wall: float = 0.0
     stopped: str | None = None
     reconcile: dict = field(default_factory=dict)
+    # One entry per pool task, by round: {round, worker (Ray: node and GPU ids),
+    # start, ready, end [s] from the run's start (task began, pool built, last write ended),
+    # cloth_frames, slots, gpu_memory_high_bytes}.
+    tasks: list = field(default_factory=list)
 
     @property
     def cloth_frames_per_second(self) -> float:
         return self.cloth_frames / self.wall if self.wall > 0 else 0.0
 
+    @property
+    def startup_s(self) -> float | None:
+        """[s] from the run's start until the last pool of the first round was built (loading,
+        Ray's workers, kernel loads and allocation): the run's start-up."""
+        first = [t["ready"] for t in self.tasks if t["round"] == 1]
+        return max(first) if first else None
+
     def to_dict(self) -> dict:
         d = asdict(self)
         d["cloth_frames_per_second"] = self.cloth_frames_per_second
+        d["startup_s"] = self.startup_s
         return d
 
 
@@ -252,7 +264,7 @@ def generate_dataset(spec, out: str | None = None, *, ray: str | None = None, ma
     garments = [_load_garment(name, spec.body) for name in spec.garments]
     plans = [plan_jobs(spec, g.name, body) for g in garments]  # all input checked before anything is written
     executor = None
-    t_start = time.perf_counter()
+    t_start, clock_start = time.perf_counter(), time.time()
     reports = []
     try:
         for garment, plan in zip(garments, plans):
@@ -274,7 +286,7 @@ def generate_dataset(spec, out: str | None = None, *, ray: str | None = None, ma
                 if executor is None:
                     executor = _make_executor(ray, spec)
                 driver = _Driver(spec, store, garment, body, executor, report, progress, say,
-                                 getattr(executor, "device", None))
+                                 getattr(executor, "device", None), clock_start)
                 driver.run(pending, time_budget, t_start)
                 report.pending = seq_total - len(store.manifest["sequences"])
                 reports.append(report)
@@ -298,9 +310,10 @@ class _Driver:
     """Runs the pending jobs of one store in pools, round by round, and keeps the store's manifest
     and the run's report (:func:`generate_dataset` step 4)."""
 
-    def __init__(self, spec, store, garment, body, executor, report, progress, say, device) -> None:
+    def __init__(self, spec, store, garment, body, executor, report, progress, say, device, clock_start) -> None:
         self.spec, self.store, self.garment, self.body = spec, store, garment, body
         self.executor, self.report, self.progress, self.say, self.device = executor, report, progress, say, device
+        self.clock_start = clock_start   # time.time() at the run's start
         self.retry: list[Job] = []
         self.by_key: dict = {}
         self._saved = time.perf_counter()
@@ -325,14 +338,14 @@ class _Driver:
         self.total = job_cloth_frames(spec, queue)
         self.show(0)
         t0 = time.perf_counter()
-        first = True
+        first, rounds = True, 0
         while queue:
             left = None if time_budget is None else time_budget - (time.perf_counter() - t_start)
             if left is not None and left <= 0:
                 report.stopped = f"time budget of {time_budget:g} s reached"
                 break
             jobs = _next_round(queue, first)
-            first = False
+            first, rounds = False, rounds + 1
             self.by_key.update({j.key: j for j in jobs})
             attempt = jobs[0].attempt
             tasks = [BatchTask(location=self.store.loc.root if self.store.loc.is_local else self.store.loc.url(),
@@ -343,6 +356,7 @@ class _Driver:
             results = self.executor.run(tasks, self.record, lambda n: self.show(base + n), left)
             not_done = [j for r in results for j in r["not_done"]]
             for r in results:
+                report.tasks.append(self._task_entry(rounds, r))
                 report.slots = max(report.slots, r["slots"])
                 self.done += r["cloth_frames"]
                 report.cloth_frames += r["cloth_frames"]
@@ -366,6 +380,11 @@ class _Driver:
             queue += self.retry
             self.total += job_cloth_frames(spec, self.retry)
             self.retry = []
+
+    def _task_entry(self, round_: int, r: dict) -> dict:
+        since = {k: v - self.clock_start for k, v in r["clock"].items()}
+        return {"round": round_, "worker": r.get("worker"), **since, "cloth_frames": r["cloth_frames"],
+                "slots": r["slots"], "gpu_memory_high_bytes": r["gpu_memory_high_bytes"]}
 
     def record(self, o: dict) -> None:
         """Enter one outcome into the manifest and the report; a failed job with attempts left is
