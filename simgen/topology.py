@@ -16,7 +16,7 @@ import numpy as np
 
 from simgen.errors import InputError
 
-__all__ = ["extract_hinges", "BsrPattern", "build_bsr_pattern"]
+__all__ = ["extract_hinges", "BsrPattern", "build_bsr_pattern", "stack_bsr_patterns"]
 
 
 def extract_hinges(faces) -> tuple[np.ndarray, np.ndarray]:
@@ -130,3 +130,23 @@ def build_bsr_pattern(num_vertices: int, faces, hinges) -> BsrPattern:
         tri_slots=np.searchsorted(keys, tri_keys).astype(np.int32).reshape(-1, 9),
         hinge_slots=np.searchsorted(keys, hinge_keys).astype(np.int32).reshape(-1, 16),
     )
+
+
+def stack_bsr_patterns(patterns: list[BsrPattern]) -> BsrPattern:
+    """The pattern of disjoint meshes taken in order (vertices, faces and hinges numbered on):
+    block-diagonal, so each one's slots follow the previous ones' and nothing is sorted again. Equal
+    to :func:`build_bsr_pattern` on the concatenated meshes, in O(nnz) instead of a sort."""
+    if len(patterns) == 1:
+        return patterns[0]
+    vstart = np.r_[0, np.cumsum([p.num_vertices for p in patterns])]
+    sstart = np.r_[0, np.cumsum([p.nnz for p in patterns])]
+
+    def cat(name: str, shift: np.ndarray) -> np.ndarray:
+        return np.concatenate([getattr(p, name).astype(np.int64) + o for p, o in zip(patterns, shift)]).astype(np.int32)
+
+    offsets = np.r_[np.concatenate([p.offsets[:-1].astype(np.int64) + o for p, o in zip(patterns, sstart)]),
+                    sstart[-1]].astype(np.int32)
+    return BsrPattern(num_vertices=int(vstart[-1]), offsets=offsets, columns=cat("columns", vstart),
+                      rows=cat("rows", vstart), diag_slots=cat("diag_slots", sstart),
+                      tri_slots=cat("tri_slots", sstart).reshape(-1, 9),
+                      hinge_slots=cat("hinge_slots", sstart).reshape(-1, 16))

@@ -9,7 +9,7 @@ from simgen.garment.garment import Garment
 from simgen.sim import MATERIALS, ClothModel, ClothModelBuilder, Material, get_material
 from simgen.sim.energies import eval_bending, eval_gravity, eval_membrane
 from simgen.sim.energies import reference as ref
-from simgen.topology import build_bsr_pattern, extract_hinges
+from simgen.topology import build_bsr_pattern, extract_hinges, stack_bsr_patterns
 
 wp.config.quiet = True
 
@@ -136,6 +136,24 @@ def test_bsr_pattern_holds_exactly_the_coupled_pairs():
     # wings of a hinge couple although they share no triangle
     x2, x3 = hinges[0][2], hinges[0][3]
     assert not any({x2, x3} <= set(tri) for tri in f) and (x2, x3) in got
+
+
+def test_stacked_patterns_equal_the_pattern_of_the_concatenated_meshes():
+    # A pool's model stacks one pattern per slot; it must be the pattern built from scratch.
+    meshes = [crumpled(3), crumpled(4), crumpled(3)]
+    faces, hinges, parts, off = [], [], [], 0
+    for v, f in meshes:
+        h, _ = extract_hinges(f)
+        parts.append(build_bsr_pattern(len(v), f, h))
+        faces.append(f + off)
+        hinges.append(h + off)
+        off += len(v)
+    whole = build_bsr_pattern(off, np.concatenate(faces), np.concatenate(hinges))
+    stacked = stack_bsr_patterns(parts)
+    assert stacked.num_vertices == whole.num_vertices
+    for name in ("offsets", "columns", "rows", "diag_slots", "tri_slots", "hinge_slots"):
+        a, b = getattr(stacked, name), getattr(whole, name)
+        assert a.dtype == b.dtype and np.array_equal(a, b), name
 
 
 def test_warp_bsr_matrix_uses_the_pattern():

@@ -13,7 +13,7 @@ takes no initial state.
 :class:`simgen.sim.SimulationPool` (:func:`pool_slots`) full with the task's jobs (continuous
 batching: a slot whose job ended takes the next one at the next frame, each job with its own start
 protocol) and hands each job that ends to a :class:`NodeWriter` (ground truth, statistics, Zarr,
-commit), in a background thread behind the simulation with ``execution.overlap_writes``. A job
+commit), in background threads behind the simulation with ``execution.overlap_writes``. A job
 that diverges comes back as a failure while the others are written; the driver runs it again in a
 later pool with the substep halved (attempt k runs substeps * 2^(k-1)) until
 ``execution.max_attempts``. A sequence with a strain outlier (a triangle past the check's limit
@@ -97,9 +97,10 @@ def job_cloth_frames(spec, jobs) -> int:
 
 #: Most slots a pool takes on a GPU; a CPU pool's slots without execution.batch_size.
 MAX_GPU_SLOTS, CPU_SLOTS = 128, 4
-#: [bytes] GPU memory one slot of a pool takes per garment vertex (the 4,424-vertex T-shirt on the
-#: 6,890-vertex body: about 98 MB, measured on an H100 with the solver, body, collider and statistics).
-SLOT_BYTES_PER_GARMENT_VERTEX = 22_500
+#: [bytes] GPU memory one slot of a pool takes per garment vertex: the T-shirt's slot (4,424
+#: vertices, with its body, collider and statistics) took 26 MB in pools of 85-128 slots on an H100
+#: (BENCHMARKS.md), about 6,000 bytes per vertex; a third more is kept for other garments' contacts.
+SLOT_BYTES_PER_GARMENT_VERTEX = 8_000
 #: Share of the device's free memory a pool may fill.
 SLOT_MEMORY_SHARE = 0.7
 
@@ -200,8 +201,9 @@ def _outcome_base(job: Job) -> dict:
 class NodeWriter:
     """Writes simulated jobs into a store as committed nodes: ground truth, statistics, Zarr.
 
-    Host work only (numpy, Zarr, the store), so it may run in a thread other than the simulation's;
-    one job at a time, in the order the jobs ended (a fit needs the template written before it).
+    Host work only (numpy, Zarr, the store), so it may run in threads other than the simulation's:
+    sequences share no state and may be written at once; the template and the fits one at a time,
+    in the order they ended (a fit needs the template written before it).
     spec, config: the store's spec and the attempt's :class:`SimulationConfig`; garment, body: host
     objects; location: the store's :class:`Location`; slots: the pool's size (recorded).
     """
@@ -297,13 +299,23 @@ class NodeWriter:
         return arrays, attrs
 
 
+#: Threads writing sequences behind the simulation (``execution.overlap_writes``); the template and
+#: the fits keep one thread of their own, in order (a fit needs the template written). The jobs of a
+#: pool's last wave end within a few frames of each other; one thread left their writes queued
+#: behind the pool's end (BENCHMARKS.md).
+SEQUENCE_WRITE_THREADS = 2
+
+
 class _Writes:
-    """The node writes of a pool run: in a background thread behind the simulation (``overlap``) or at
+    """The node writes of a pool run: in background threads behind the simulation (``overlap``) or at
     once; outcomes are handed on in the order the jobs ended."""
 
     def __init__(self, writer: NodeWriter, overlap: bool, on_outcome) -> None:
         self.writer, self.on_outcome = writer, on_outcome
-        self.pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="simgen-write") if overlap else None
+        self.pool = self.lane = None
+        if overlap:
+            self.pool = ThreadPoolExecutor(max_workers=SEQUENCE_WRITE_THREADS, thread_name_prefix="simgen-write")
+            self.lane = ThreadPoolExecutor(max_workers=1, thread_name_prefix="simgen-write-setup")
         self.pending: deque = deque()
         self.outcomes: list = []
         self.error: str | None = None
@@ -316,7 +328,8 @@ class _Writes:
         if self.pool is None:
             self._finish(job, *self._timed(job, res))
         else:
-            self.pending.append((job, self.pool.submit(self._timed, job, res)))
+            executor = self.pool if job.kind == "sequence" else self.lane
+            self.pending.append((job, executor.submit(self._timed, job, res)))
 
     def _timed(self, job, res):
         t0 = time.perf_counter()
@@ -354,8 +367,9 @@ class _Writes:
         try:
             self.collect(wait=True)
         finally:
-            if self.pool is not None:
-                self.pool.shutdown(wait=True)
+            for executor in (self.pool, self.lane):
+                if executor is not None:
+                    executor.shutdown(wait=True)
 
 
 def run_pool_task(task: BatchTask, *, progress=None, on_outcome=None, deadline: float | None = None) -> dict:

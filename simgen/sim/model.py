@@ -21,6 +21,7 @@ accumulate into its ``values`` through the model's slot maps (``tri_slots``, ``h
 
 from __future__ import annotations
 
+import hashlib
 from dataclasses import dataclass
 from types import SimpleNamespace
 from typing import TYPE_CHECKING
@@ -31,7 +32,7 @@ import warp as wp
 from simgen.errors import InputError
 from simgen.sim.warp_toolkit import check_scalar, scalar_types
 from simgen.materials import Material, get_material
-from simgen.topology import BsrPattern, build_bsr_pattern, extract_hinges
+from simgen.topology import BsrPattern, build_bsr_pattern, extract_hinges, stack_bsr_patterns
 
 if TYPE_CHECKING:
     from simgen.garment.waistband import Attachment
@@ -218,6 +219,19 @@ class ClothModelBuilder:
         return ClothModel._build(self.instances, device, dtype)
 
 
+def _instance_patterns(instances: list[InstanceSpec]) -> BsrPattern:
+    """The model's Hessian pattern: each instance's, stacked; instances of one mesh (a pool's
+    slots) share one build."""
+    built: dict = {}
+    parts = []
+    for s in instances:
+        key = (len(s.vertices), hashlib.sha1(np.ascontiguousarray(s.faces, dtype=np.int64).tobytes()).digest())
+        if key not in built:
+            built[key] = build_bsr_pattern(len(s.vertices), s.faces, s.hinges)
+        parts.append(built[key])
+    return stack_bsr_patterns(parts)
+
+
 class ClothModel:
     """Static part of a batched cloth simulation (see the module docstring).
 
@@ -369,7 +383,7 @@ class ClothModel:
             stiffness=np.concatenate([a.stiffness for a, _ in attached] + [np.zeros(0)]))
         self.num_attachments = len(attach.vertex)
 
-        self.pattern: BsrPattern = build_bsr_pattern(len(rest), faces, hinges)
+        self.pattern: BsrPattern = _instance_patterns(instances)
         self.host = SimpleNamespace(
             rest_positions=rest, vertex_mass=mass, vertex_instance=vertex_instance, vertex_pinned=pinned,
             vertex_friction=vertex_friction, vertex_damping_mass=vertex_damping_mass, vertex_body_part=body_part,
