@@ -930,9 +930,12 @@ def dataset_presets(
     """The bundled dataset specs that `simgen dataset generate` takes by name."""
     import json
 
+    from simgen.dataset.softtissue import list_softtissue_presets, load_softtissue_spec
     from simgen.dataset.spec import list_presets, load_spec
 
-    rows = [{"name": name, "description": load_spec(name).description} for name in list_presets()]
+    rows = [{"name": name, "kind": "garment", "description": load_spec(name).description} for name in list_presets()]
+    rows += [{"name": name, "kind": "softtissue", "description": load_softtissue_spec(name).description}
+             for name in list_softtissue_presets()]
     if as_json:
         typer.echo(json.dumps(rows, indent=2))
         return
@@ -941,9 +944,10 @@ def dataset_presets(
 
     table = Table(title=f"{len(rows)} dataset presets")
     table.add_column("name", no_wrap=True)
+    table.add_column("kind")
     table.add_column("description")
     for r in rows:
-        table.add_row(r["name"], r["description"] or "-")
+        table.add_row(r["name"], r["kind"], r["description"] or "-")
     Console().print(table)
 
 
@@ -1116,8 +1120,9 @@ def train_gru_l2_cmd(
 
 @train_app.command("softtissue")
 def train_softtissue_cmd(
-    data: str = typer.Option(..., "--data", help="'synthetic' (a synthetic test signal on the bundled body) or a "
-                             "Dyna .h5 file (dyna_female.h5 / dyna_male.h5; needs --body)."),
+    data: str = typer.Option(..., "--data", help="'synthetic' (a synthetic test signal on the bundled body), a "
+                             "soft-tissue store (`simgen dataset generate softtissue`) or a Dyna .h5 file "
+                             "(dyna_female.h5 / dyna_male.h5; needs --body)."),
     out: Path = typer.Option(..., "--out", help="Model folder (the model goes to OUT/softtissue/)."),
     body: Optional[str] = typer.Option(None, "--body", help="SMPL body file (.pkl/.npz) for a Dyna file."),
     device: str = _T_DEVICE, time_budget: Optional[float] = _T_BUDGET, restart: bool = _T_RESTART,

@@ -60,8 +60,13 @@ def run_generate(spec_arg, *, out=None, ray=None, max_sequences=None, time_budge
                  console=None, progress_factory=None, overrides=None) -> int:
     """Generate; print a summary; return the exit code (0 done or stopped by a limit, 1 failed jobs)."""
     from simgen.dataset.generate import GenerationError, generate_dataset
+    from simgen.dataset.softtissue import is_softtissue_spec
     from simgen.dataset.spec import load_spec
 
+    if is_softtissue_spec(spec_arg):
+        return _generate_softtissue(spec_arg, out=out, ray=ray, max_sequences=max_sequences, time_budget=time_budget,
+                                    report=report, dry_run=dry_run, progress_factory=progress_factory,
+                                    overrides=overrides)
     spec = load_spec(spec_arg).with_overrides(**(overrides or {}))
     if dry_run:
         rows = plan_summary(spec)
@@ -106,11 +111,51 @@ def run_generate(spec_arg, *, out=None, ray=None, max_sequences=None, time_budge
     return code
 
 
+def _generate_softtissue(spec_arg, *, out, ray, max_sequences, time_budget, report, dry_run, progress_factory,
+                         overrides) -> int:
+    from simgen.dataset.softtissue import generate_softtissue, load_softtissue_spec
+
+    spec = load_softtissue_spec(spec_arg)
+    given = {k: v for k, v in (overrides or {}).items() if v is not None}
+    extra = (["--ray"] if ray is not None else []) + ["--" + k.replace("_", "-") for k in sorted(set(given) - {"device"})]
+    if extra:
+        raise InputError(f"a soft-tissue spec takes only --out, --device, --max-sequences and --time-budget "
+                         f"(got {', '.join(extra)})")
+    if "device" in given:
+        from dataclasses import replace
+
+        spec = replace(spec, device=given["device"])
+    if dry_run:
+        print(json.dumps({"store": spec.output_path(out), "shapes": len(spec.shapes), "motions": len(spec.motions),
+                          "sequences": len(spec.plan()) * len(spec.shapes)}, indent=2))
+        return 0
+    bar, update = (progress_factory or _plain_progress)(f"soft tissue {spec.name}", 1)
+    with bar:
+        r = generate_softtissue(spec, out, max_sequences=max_sequences, time_budget=time_budget, progress=update,
+                                log=lambda msg: print(msg, file=sys.stderr))
+    state = "complete" if r.pending == 0 else f"{r.pending} sequences pending (rerun to continue)"
+    print(f"{r.path}: {r.written} soft-tissue sequences written now, {r.planned - r.pending} of {r.planned} done, "
+          f"{state}; {r.frames} frames in {r.wall:.1f} s" + (f"; stopped: {r.stopped}" if r.stopped else ""))
+    if report is not None:
+        from simgen._fileio import atomic_write_bytes
+
+        Path(report).parent.mkdir(parents=True, exist_ok=True)
+        atomic_write_bytes(report, json.dumps([r.to_dict()], indent=2).encode())
+    return 0
+
+
 def run_check(path, *, stride=1, max_depth=1e-3, max_strain=1.0, require_complete=False, as_json=False,
               progress_factory=None, device="auto") -> int:
     from simgen.dataset.check import check_dataset
+    from simgen.dataset.softtissue import check_softtissue_store, is_softtissue_store
 
     make = progress_factory or _plain_progress
+    if is_softtissue_store(path):
+        bar, update = make("checking", 1)
+        with bar:
+            rep = check_softtissue_store(path, require_complete=require_complete, progress=update)
+        print(json.dumps(rep, indent=2) if as_json else _format_softtissue_check(rep))
+        return 0 if rep["passed"] else 1
     bar, update = make("checking", 1)
     with bar:
         rep = check_dataset(path, stride=stride, max_depth=max_depth, max_strain=max_strain,
@@ -119,9 +164,34 @@ def run_check(path, *, stride=1, max_depth=1e-3, max_strain=1.0, require_complet
     return 0 if rep.passed else 1
 
 
+def _format_softtissue_check(rep: dict) -> str:
+    head = (f"{rep['path']}: {'PASSED' if rep['passed'] else 'FAILED'}: {rep['sequences']} soft-tissue sequences, "
+            f"{rep['frames']} frames; largest displacement {100 * rep['max_peak_m']:.2f} cm, smallest tetrahedron "
+            f"det {rep['min_det'] if rep['min_det'] is None else format(rep['min_det'], '.3f')}")
+    return "\n".join([head] + [f"problem: {p}" for p in rep["problems"]] + [f"failed: {f}" for f in rep["failed"]])
+
+
+def _softtissue_info(path, as_json: bool) -> None:
+    from simgen.dataset.softtissue import read_store_rows
+
+    head, rows = read_store_rows(path)
+    if as_json:
+        print(json.dumps({"dataset": head, "sequences": rows}, indent=2))
+        return
+    print(f"{head['path']}: soft tissue on body {head['body']['id']} ({head['mesh']['nodes']:,} nodes, "
+          f"{head['mesh']['tets']:,} tetrahedra); {head['sequences']} sequences ({head['test']} test), "
+          f"{head['frames']:,} frames at {head['fps']:g} fps; shapes {', '.join(head['shapes'])}")
+    for r in rows:
+        print(f"  {r['id']:<40} {r['split']:<5} {r['frames']:>5} frames  peak {100 * r['peak_m']:5.2f} cm  "
+              f"mean speed {100 * r['mean_speed_mps']:6.2f} cm/s  min det {r['min_det']:.3f}")
+
+
 def run_info(path, *, as_json=False) -> None:
     from simgen.dataset.reader import open_dataset
+    from simgen.dataset.softtissue import is_softtissue_store
 
+    if is_softtissue_store(path):
+        return _softtissue_info(path, as_json)
     ds = open_dataset(path)
     rows = []
     for sid in ds.sequence_ids():

@@ -720,16 +720,22 @@ def _validate_scalars(spec: DatasetSpec, where: str) -> None:
 
 # ------------------------------------------------------------------------------------ loading
 def list_presets() -> list[str]:
-    """Names of the bundled presets (simgen/dataset/presets/*.toml)."""
-    return sorted(p.stem for p in PRESETS_DIR.glob("*.toml"))
+    """Names of the bundled garment presets (simgen/dataset/presets/*.toml; the soft-tissue ones,
+    ``kind = "softtissue"``, are :func:`simgen.dataset.softtissue.list_softtissue_presets`)."""
+    from simgen.dataset.softtissue import is_softtissue_spec
+
+    return sorted(p.stem for p in PRESETS_DIR.glob("*.toml") if not is_softtissue_spec(p))
 
 
 def preset_path(name: str) -> Path:
     """Path of a bundled preset; InputError for an unknown name."""
     p = PRESETS_DIR / f"{name}.toml"
     if not p.is_file():
-        raise InputError(f"unknown dataset preset {name!r}; presets: {', '.join(list_presets())} "
-                         f"(or give the path of a .toml spec)")
+        from simgen.dataset.softtissue import list_softtissue_presets
+
+        raise InputError(f"unknown dataset preset {name!r}; presets: "
+                         f"{', '.join(sorted(list_presets() + list_softtissue_presets()))} (or give the path of a "
+                         f".toml spec)")
     return p
 
 

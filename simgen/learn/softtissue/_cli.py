@@ -13,18 +13,23 @@ __all__ = ["run_train_softtissue", "load_softtissue_source"]
 def load_softtissue_source(data: str, body_file: str | None, *, max_frames: int | None = None, device: str = "cpu",
                            progress=None):
     """(SoftTissueData, BodyModel) of a ``--data`` value: "synthetic" (the bundled open body and the
-    synthetic test signal of :func:`~simgen.learn.softtissue.data.synthetic_softtissue_data`) or a
-    Dyna .h5 file, read with the SMPL body file ``body_file`` (:func:`~simgen.learn.softtissue.dyna.read_dyna`)."""
+    synthetic test signal of :func:`~simgen.learn.softtissue.data.synthetic_softtissue_data`), a
+    soft-tissue store (``simgen dataset generate softtissue``, :func:`~simgen.dataset.softtissue.read_softtissue_store`)
+    or a Dyna .h5 file, read with the SMPL body file ``body_file`` (:func:`~simgen.learn.softtissue.dyna.read_dyna`)."""
     from simgen.body import load
+    from simgen.dataset.softtissue import is_softtissue_store, read_softtissue_store
 
     if data == "synthetic":
         from simgen.learn.softtissue.data import synthetic_softtissue_data
 
         body = load(body_file) if body_file else load("open")
         return synthetic_softtissue_data(body, frames=max_frames or 60), body
+    if is_softtissue_store(data):
+        data_set = read_softtissue_store(data, body=load(body_file) if body_file else None, max_frames=max_frames)
+        return data_set, load(body_file) if body_file else _store_body(data)
     path = Path(data)
     if path.suffix.lower() not in (".h5", ".hdf5"):
-        raise InputError(f"--data must be 'synthetic' or a Dyna .h5 file, got {data!r}")
+        raise InputError(f"--data must be 'synthetic', a soft-tissue store or a Dyna .h5 file, got {data!r}")
     if not path.is_file():
         raise InputError(f"--data {data} does not exist")
     if not body_file:
@@ -34,6 +39,13 @@ def load_softtissue_source(data: str, body_file: str | None, *, max_frames: int 
 
     body = load(body_file)
     return read_dyna(path, body, max_frames=max_frames, device=device, progress=progress), body
+
+
+def _store_body(path: str):
+    from simgen.body import load
+    from simgen.dataset.storage import Location
+
+    return load(Location(path).node_attrs("")["body"]["source"])
 
 
 def run_train_softtissue(*, data: str, body: str | None, out: Path, device: str, time_budget: float | None,

@@ -1,0 +1,524 @@
+"""Soft-tissue datasets: SoftSMPL's ground truth (thesis ch. 3) simulated by :mod:`simgen.softtissue`.
+
+Every shape of a spec does every motion (and its left-right mirror image, the thesis's
+augmentation); each (motion, mirror) is one batched simulation of the shapes not stored yet, and
+each shape's result is one committed node. The store has the garment stores' guarantees
+(:mod:`simgen.dataset.store`: staged writes, commit records with checksums, a manifest the driver
+rewrites, reconciliation after a kill, a lock), so a killed run resumes with the same command.
+
+Layout (Zarr v3)::
+
+    DATASET/zarr.json                 root attrs: format_version, kind "softtissue", spec, content_key/hash,
+                                      body {id, hash, source, num_betas}, mesh {nodes, tets, hash}, flesh
+    DATASET/sequences/<id>/           displacements (T,V,3) [m] Delta in the unposed frame (x = skin(T +
+                                      B_s + B_p + Delta)), poses (T,72) [rad], trans (T,3) [m], betas (B,);
+                                      attrs: motion, mirrored, shape_id, split, fps, frames, stats, meta, commit
+    DATASET/manifest.json, .lock, .staging/   as in garment stores
+
+Sequence ids are ``<motion>[_mirror]__<shape>``. Read a store for training with
+:func:`read_softtissue_store` (``simgen train softtissue --data STORE``), check it with
+:func:`check_softtissue_store` (``simgen dataset check STORE``).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import time
+import tomllib
+from dataclasses import asdict, dataclass, field, fields, replace
+from pathlib import Path
+
+import numpy as np
+
+from simgen.errors import InputError
+
+__all__ = ["SoftTissueSpec", "load_softtissue_spec", "is_softtissue_spec", "is_softtissue_store",
+           "generate_softtissue", "read_softtissue_store", "read_store_rows", "check_softtissue_store", "list_softtissue_presets",
+           "SoftTissueReport", "sequence_id"]
+
+PRESETS_DIR = Path(__file__).parent / "presets"
+KIND = "softtissue"
+MAX_PEAK = 0.10   # [m] largest displacement the check accepts (the validation's peaks are 1-4 cm)
+
+
+@dataclass(frozen=True)
+class SoftTissueSpec:
+    """What a soft-tissue store holds (a TOML file with ``kind = "softtissue"``; see the presets).
+
+    name: the store's name; body: "open" or an SMPL file; mesh: a flesh mesh file (None: the body's
+    bundled one); shapes: ((id, betas), ...) with betas [-] as long as the body's or shorter
+    (zeros follow); motions: library clip names; test_motions: held out (split "test"; default: the
+    library's test clips); mirror: also each clip's mirror image; clip_start [s], max_seconds [s]
+    (None: to the end): the window of each clip simulated; batch_size: shapes per simulation (0:
+    all of a motion at once); device: "auto", "cpu", "cuda:N"; flesh: the simulation's
+    :class:`simgen.softtissue.FleshParams`; output: default store folder; description: one line.
+    """
+
+    name: str
+    shapes: tuple
+    motions: tuple
+    body: str = "open"
+    mesh: str | None = None
+    test_motions: tuple | None = None
+    mirror: bool = True
+    clip_start: float = 0.0
+    max_seconds: float | None = None
+    batch_size: int = 0
+    device: str = "auto"
+    flesh: object = None
+    output: str | None = None
+    description: str = ""
+    source: str = field(default="", compare=False)
+
+    def resolved_device(self) -> str:
+        if self.device != "auto":
+            return self.device
+        import warp as wp
+
+        return "cuda:0" if wp.get_cuda_device_count() > 0 else "cpu"
+
+    def split(self, motion: str) -> str:
+        if self.test_motions is not None:
+            return "test" if motion in self.test_motions else "train"
+        from simgen.motion.library import library_split
+
+        return "test" if motion in library_split()["test"] else "train"
+
+    def plan(self) -> list[tuple[str, bool]]:
+        """(motion, mirrored) of every simulation, in order."""
+        return [(m, mirrored) for m in self.motions for mirrored in ((False, True) if self.mirror else (False,))]
+
+    def content_key(self) -> dict:
+        """What the stored data depends on (not where it goes or on what device)."""
+        d = self.to_dict()
+        for k in ("output", "device", "batch_size", "source", "description"):
+            d.pop(k, None)
+        return d
+
+    def to_dict(self) -> dict:
+        d = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "flesh"}
+        d["shapes"] = [{"id": i, "betas": list(b)} for i, b in self.shapes]
+        d["motions"] = list(self.motions)
+        d["test_motions"] = None if self.test_motions is None else list(self.test_motions)
+        d["flesh"] = asdict(self.flesh)
+        return json.loads(json.dumps(d))
+
+    def output_path(self, out: str | None = None) -> str:
+        return out if out is not None else (self.output or f"datasets/{self.name}")
+
+
+_FIELDS = {"kind", "name", "description", "body", "mesh", "shapes", "motions", "test_motions", "mirror", "clip_start",
+           "max_seconds", "batch_size", "device", "flesh", "output"}
+
+
+def list_softtissue_presets() -> list[str]:
+    """Names of the bundled soft-tissue presets."""
+    return sorted(p.stem for p in PRESETS_DIR.glob("*.toml") if is_softtissue_spec(p))
+
+
+def is_softtissue_spec(spec) -> bool:
+    """Whether ``spec`` (a spec object, a preset name or a TOML path) is a soft-tissue spec."""
+    if isinstance(spec, SoftTissueSpec):
+        return True
+    if not isinstance(spec, (str, Path)):
+        return False
+    path = _spec_path(spec)
+    if path is None or not path.is_file():
+        return False
+    try:
+        return tomllib.loads(path.read_text(encoding="utf-8")).get("kind") == KIND
+    except (UnicodeDecodeError, tomllib.TOMLDecodeError):
+        return False
+
+
+def _spec_path(spec) -> Path | None:
+    text = str(spec)
+    path = Path(text).expanduser()
+    if path.suffix != ".toml" and "/" not in text and not path.exists():
+        path = PRESETS_DIR / f"{text}.toml"
+    return path
+
+
+def load_softtissue_spec(spec) -> SoftTissueSpec:
+    """A soft-tissue spec from a preset name, a TOML path or a dict. InputError names the bad field."""
+    if isinstance(spec, SoftTissueSpec):
+        return spec
+    source = "<dict>"
+    if isinstance(spec, dict):
+        doc = spec
+    else:
+        path = _spec_path(spec)
+        if path is None or not path.is_file():
+            raise InputError(f"soft-tissue spec {spec} does not exist")
+        try:
+            doc = tomllib.loads(path.read_text(encoding="utf-8"))
+        except (UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
+            raise InputError(f"soft-tissue spec {path} is not valid TOML ({exc})") from None
+        source = str(path)
+    return _parse(doc, source)
+
+
+def _parse(doc: dict, source: str) -> SoftTissueSpec:
+    from simgen.softtissue.params import FleshParams
+
+    where = f"soft-tissue spec {source}"
+    unknown = sorted(set(doc) - _FIELDS)
+    if unknown:
+        raise InputError(f"{where}: unknown field {unknown[0]!r} (known: {', '.join(sorted(_FIELDS))})")
+    if doc.get("kind", KIND) != KIND:
+        raise InputError(f"{where}: kind must be {KIND!r}, got {doc.get('kind')!r}")
+
+    def names(key, required):
+        v = doc.get(key)
+        if v is None and not required:
+            return None
+        if not isinstance(v, list) or not v or not all(isinstance(n, str) and n for n in v):
+            raise InputError(f"{where}: {key} must be a non-empty list of names, got {v!r}")
+        if len(set(v)) != len(v):
+            raise InputError(f"{where}: {key} lists a name twice")
+        return tuple(v)
+
+    shapes = []
+    for k, s in enumerate(doc.get("shapes") or []):
+        sid, betas = (s.get("id"), s.get("betas", [])) if isinstance(s, dict) else (None, None)
+        if not isinstance(sid, str) or not sid or "__" in sid or not isinstance(betas, list) or \
+                not all(isinstance(b, (int, float)) and np.isfinite(b) for b in betas):
+            raise InputError(f"{where}: shapes[{k}] must be {{id = NAME (no '__'), betas = [numbers]}}, got {s!r}")
+        shapes.append((sid, tuple(float(b) for b in betas)))
+    if not shapes or len({i for i, _ in shapes}) != len(shapes):
+        raise InputError(f"{where}: shapes must list at least one shape, each id once")
+    motions = names("motions", True)
+    bad = [m for m in motions if "__" in m or m.endswith("_mirror")]
+    if bad:
+        raise InputError(f"{where}: motion name {bad[0]!r} may not contain '__' or end in '_mirror'")
+    flesh = doc.get("flesh") or {}
+    if not isinstance(flesh, dict):
+        raise InputError(f"{where}: [flesh] must be a table of FleshParams fields")
+    try:
+        params = FleshParams(**flesh)
+    except TypeError as exc:
+        raise InputError(f"{where}: [flesh]: {exc}") from None
+    num = {"clip_start": (0.0, float), "max_seconds": (0.0, float), "batch_size": (0, int)}
+    values = {}
+    for key, (low, kind) in num.items():
+        v = doc.get(key)
+        if v is None:
+            continue
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or (kind is int and not isinstance(v, int)) \
+                or not v >= low or (key == "max_seconds" and not v > 0):
+            raise InputError(f"{where}: {key} must be a number >= {low}{' (> 0)' if key == 'max_seconds' else ''}, "
+                             f"got {v!r}")
+        values[key] = kind(v)
+    for key in ("body", "mesh", "device", "output", "name", "description"):
+        if key in doc and not (isinstance(doc[key], str) and doc[key]):
+            raise InputError(f"{where}: {key} must be a non-empty string, got {doc[key]!r}")
+    if "mirror" in doc and not isinstance(doc["mirror"], bool):
+        raise InputError(f"{where}: mirror must be true or false, got {doc['mirror']!r}")
+    name = doc.get("name") or (Path(source).stem if source != "<dict>" else None)
+    if not name:
+        raise InputError(f"{where}: name is missing")
+    return SoftTissueSpec(name=name, shapes=tuple(shapes), motions=motions, body=doc.get("body", "open"),
+                          mesh=doc.get("mesh"), test_motions=names("test_motions", False),
+                          mirror=doc.get("mirror", True), device=doc.get("device", "auto"), flesh=params,
+                          output=doc.get("output"), description=doc.get("description", ""), source=source,
+                          **values)
+
+
+# ------------------------------------------------------------------------------------------ writing
+@dataclass
+class SoftTissueReport:
+    """What one run did: path, planned/written/pending sequences, frames simulated, wall [s],
+    the simulation's share of it [s], and why it stopped early (None: it did not)."""
+
+    path: str
+    planned: int
+    done_before: int
+    written: int = 0
+    pending: int = 0
+    frames: int = 0
+    wall: float = 0.0
+    simulate_wall: float = 0.0
+    stopped: str | None = None
+    reconcile: dict = field(default_factory=dict)
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def sequence_id(motion: str, mirrored: bool, shape_id: str) -> str:
+    return f"{motion}{'_mirror' if mirrored else ''}__{shape_id}"
+
+
+def _mesh_hash(mesh) -> str:
+    h = hashlib.sha256()
+    for a in (mesh.nodes, mesh.tets):
+        h.update(np.ascontiguousarray(a).tobytes())
+    return h.hexdigest()
+
+
+def _root_attrs(spec: SoftTissueSpec, body, mesh) -> dict:
+    from simgen import __version__
+    from simgen.dataset.storage import FORMAT_VERSION
+
+    key = spec.content_key()
+    key["body_hash"] = body.hash
+    key["mesh_hash"] = _mesh_hash(mesh)
+    return {"format_version": FORMAT_VERSION, "simgen_version": __version__, "kind": KIND, "spec": spec.to_dict(),
+            "content_key": key, "content_hash": hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest(),
+            "body": {"id": body.model_id, "hash": body.hash, "source": spec.body, "num_betas": body.num_betas},
+            "mesh": {"nodes": int(mesh.num_nodes), "tets": int(mesh.num_tets), "hash": key["mesh_hash"]},
+            "flesh": asdict(spec.flesh)}
+
+
+def _clip(spec: SoftTissueSpec, motion: str, mirrored: bool):
+    from simgen.motion.library import load_motion
+    from simgen.motion.ops import mirror, trim
+
+    clip = load_motion(motion)
+    end = clip.duration if spec.max_seconds is None else min(clip.duration, spec.clip_start + spec.max_seconds)
+    if not end > spec.clip_start:
+        raise InputError(f"motion {motion!r} is {clip.duration:.2f} s long; clip_start {spec.clip_start:g} s is past it")
+    clip = trim(clip, spec.clip_start, end)
+    return mirror(clip) if mirrored else clip
+
+
+def _betas(spec: SoftTissueSpec, body, ids: list[str]) -> np.ndarray:
+    table = dict(spec.shapes)
+    out = np.zeros((len(ids), body.num_betas))
+    for k, sid in enumerate(ids):
+        b = np.asarray(table[sid], dtype=np.float64)
+        if len(b) > body.num_betas:
+            raise InputError(f"shape {sid!r} has {len(b)} betas; body {spec.body!r} has {body.num_betas}")
+        out[k, :len(b)] = b
+    return out
+
+
+def _node(spec: SoftTissueSpec, res, motion: str, mirrored: bool, shape_id: str) -> tuple[dict, dict]:
+    d = np.asarray(res.displacements, dtype=np.float32)
+    mag = np.linalg.norm(d, axis=-1)                                      # (T, V) [m]
+    speed = np.linalg.norm(np.diff(d, axis=0), axis=-1) * res.fps if len(d) > 1 else np.zeros((0, d.shape[1]))
+    arrays = {"displacements": d, "poses": np.asarray(res.poses, dtype=np.float32),
+              "trans": np.asarray(res.trans, dtype=np.float32), "betas": np.asarray(res.betas, dtype=np.float32)}
+    stats = {"peak_m": float(mag.max(initial=0.0)), "mean_m": float(mag.mean()) if mag.size else 0.0,
+             "mean_speed_mps": float(speed.mean()) if speed.size else 0.0, "min_det": float(res.meta["min_det"]),
+             "cg_iterations_max": int(res.meta["cg_iterations_max"]), "cg_capped": int(res.meta["cg_capped"])}
+    attrs = {"motion": motion, "mirrored": bool(mirrored), "shape_id": shape_id, "split": spec.split(motion),
+             "fps": float(res.fps), "frames": int(len(d)), "stats": stats,
+             "meta": {k: v for k, v in res.meta.items() if k not in ("params",)}}
+    return arrays, attrs
+
+
+def generate_softtissue(spec, out: str | None = None, *, max_sequences: int | None = None,
+                        time_budget: float | None = None, progress=None, log=None) -> SoftTissueReport:
+    """Generate (or resume) a soft-tissue store. progress(done, total) in sequences; log(str).
+
+    time_budget [s]: start no simulation that would not end in time (estimated from the ones run);
+    max_sequences: at most this many new sequences. Raises InputError for bad input,
+    StoreWriteError when the store cannot be written (it stays consistent and resumable).
+    """
+    from simgen import body as body_pkg
+    from simgen._warp_log import quiet_warp
+    from simgen.dataset.storage import Location
+    from simgen.dataset.store import DatasetStore
+    from simgen.softtissue.mesh import flesh_mesh
+
+    quiet_warp()
+    spec = load_softtissue_spec(spec)
+    say = log or (lambda msg: None)
+    body = body_pkg.load(spec.body)
+    mesh = flesh_mesh(body, spec.mesh)
+    for motion in spec.motions:
+        _clip(spec, motion, False)   # every clip loads and is long enough, before anything is written
+    t0 = time.perf_counter()
+    loc = Location(spec.output_path(out))
+    store = DatasetStore.open_for_writing(loc, _root_attrs(spec, body, mesh))
+    try:
+        rec = store.reconcile()
+        if any(rec.values()):
+            say(f"{loc.root}: resumed ({', '.join(f'{k} {v}' for k, v in rec.items() if v)})")
+        planned = [(m, r, sid) for m, r in spec.plan() for sid, _ in spec.shapes]
+        report = SoftTissueReport(path=loc.root, planned=len(planned), done_before=len(store.manifest["sequences"]),
+                                  reconcile=rec)
+        _run(spec, store, body, mesh, report, max_sequences, time_budget, t0, progress)
+        report.pending = len(planned) - len(store.manifest["sequences"])
+        report.wall = time.perf_counter() - t0
+        return report
+    finally:
+        store.save_manifest()
+        store.release()
+
+
+def _run(spec, store, body, mesh, report, max_sequences, time_budget, t0, progress) -> None:
+    from simgen.softtissue.simulate import simulate_softtissue
+
+    device = spec.resolved_device()
+    groups = []
+    for motion, mirrored in spec.plan():
+        todo = [sid for sid, _ in spec.shapes if not store.done("sequence", sequence_id(motion, mirrored, sid))]
+        size = spec.batch_size or len(todo) or 1
+        groups += [(motion, mirrored, todo[i:i + size]) for i in range(0, len(todo), size)]
+    total = sum(len(g[2]) for g in groups)
+    left = total if max_sequences is None else min(total, max_sequences)
+    done, per_frame_s = 0, None   # [s] wall per simulated frame of one shape, from the runs so far
+    for motion, mirrored, ids in groups:
+        ids = ids[:max(left - done, 0)]
+        if not ids:
+            report.stopped = report.stopped or f"--max-sequences {max_sequences} reached"
+            break
+        clip = _clip(spec, motion, mirrored)
+        frames = int(np.floor(clip.duration * spec.flesh.fps + 1e-9)) + 1
+        if time_budget is not None and per_frame_s is not None and \
+                time.perf_counter() - t0 + per_frame_s * frames * len(ids) > time_budget:
+            report.stopped = f"time budget of {time_budget:g} s reached"
+            break
+        t = time.perf_counter()
+        results = simulate_softtissue(body, replace(clip, name=motion + ("_mirror" if mirrored else "")),
+                                      _betas(spec, body, ids), spec.flesh, mesh=mesh, device=device, subjects=ids)
+        report.simulate_wall += time.perf_counter() - t
+        for sid, res in zip(ids, results):
+            node = sequence_id(motion, mirrored, sid)
+            arrays, attrs = _node(spec, res, motion, mirrored, sid)
+            commit = store.loc.write_node(f"sequences/{node}", arrays, attrs)
+            store.record({"ok": True, "kind": "sequence", "id": node, "checksum": commit["checksum"],
+                          "frames": attrs["frames"], "motion": motion, "shape_id": sid, "split": attrs["split"]})
+            report.written += 1
+            report.frames += attrs["frames"]
+        store.save_manifest()
+        per_frame_s = (time.perf_counter() - t0) / max(report.frames, 1)
+        done += len(ids)
+        if progress is not None:
+            progress(done, total)
+
+
+# ------------------------------------------------------------------------------------------ reading
+def is_softtissue_store(path) -> bool:
+    """Whether ``path`` (a folder or URL) holds a soft-tissue store."""
+    from simgen.dataset.storage import Location
+
+    try:
+        attrs = Location(str(path)).node_attrs("")
+    except (OSError, ValueError):
+        return False
+    return bool(attrs) and attrs.get("kind") == KIND
+
+
+def _open(path):
+    from simgen.dataset.storage import Location
+    from simgen.dataset.store import read_manifest
+
+    loc = Location(str(path))
+    attrs = loc.node_attrs("")
+    if not attrs or attrs.get("kind") != KIND:
+        raise InputError(f"{path} is not a simgen soft-tissue store")
+    manifest = read_manifest(loc)
+    if manifest is None:
+        raise InputError(f"{path}: the soft-tissue store has no manifest")
+    return loc, attrs, manifest
+
+
+def read_softtissue_store(path, *, body=None, max_frames: int | None = None):
+    """The committed sequences of a store as :class:`simgen.learn.softtissue.SoftTissueData` (the
+    shapes are its subjects; a mirrored clip keeps its motion's name, so a held-out motion holds
+    out its mirror too). body: the body model (default: the store's, checked by hash);
+    max_frames: at most this many frames per sequence."""
+    import zarr
+
+    from simgen import body as body_pkg
+    from simgen.learn.softtissue.data import SoftTissueData, SoftTissueSequence
+
+    loc, attrs, manifest = _open(path)
+    body = body_pkg.load(attrs["body"]["source"]) if body is None else body
+    if body.hash != attrs["body"]["hash"]:
+        raise InputError(f"{path} was made with body {attrs['body']['id']!r} (hash {attrs['body']['hash'][:12]}); "
+                         f"the body given has hash {body.hash[:12]}")
+    seqs = []
+    for node in sorted(manifest["sequences"]):
+        g = zarr.open_group(loc.url(f"sequences/{node}"), mode="r")
+        a = dict(g.attrs)
+        n = a["frames"] if max_frames is None else min(a["frames"], max_frames)
+        seqs.append(SoftTissueSequence(
+            name=node, subject=a["shape_id"], motion=a["motion"], betas=g["betas"][...], poses=g["poses"][:n],
+            trans=g["trans"][:n], fps=a["fps"], displacements=g["displacements"][:n],
+            meta={"store": str(path), "mirrored": a["mirrored"], "split": a["split"], **a["meta"]}))
+    if not seqs:
+        raise InputError(f"{path}: the soft-tissue store has no sequences yet")
+    return SoftTissueData(sequences=seqs, body={"id": body.name, "hash": body.hash}, faces=body.faces,
+                          template=body.v_template, source=str(path))
+
+
+def read_store_rows(path) -> tuple[dict, list[dict]]:
+    """(head, rows) for ``simgen dataset info``: the store's body, mesh, counts, and per sequence its
+    id, motion, mirrored, shape, split, frames and stats (from the attrs; nothing read in full)."""
+    loc, attrs, manifest = _open(path)
+    rows = []
+    for node in sorted(manifest["sequences"]):
+        a = loc.node_attrs(f"sequences/{node}") or {}
+        rows.append({"id": node, "motion": a.get("motion"), "mirrored": a.get("mirrored"), "shape": a.get("shape_id"),
+                     "split": a.get("split"), "frames": a.get("frames"), **(a.get("stats") or {})})
+    head = {"path": str(path), "kind": KIND, "body": attrs["body"], "mesh": attrs["mesh"],
+            "fps": attrs["flesh"]["fps"], "shapes": [s["id"] for s in attrs["spec"]["shapes"]],
+            "sequences": len(rows), "test": sum(r["split"] == "test" for r in rows),
+            "frames": sum(r["frames"] or 0 for r in rows), "failed": sorted(manifest.get("failed", {})),
+            "simgen_version": attrs.get("simgen_version")}
+    return head, rows
+
+
+def check_softtissue_store(path, *, max_peak: float = MAX_PEAK, require_complete: bool = False,
+                           progress=None) -> dict:
+    """Check a store: manifest and nodes agree (committed, checksums recomputed), arrays finite and of
+    one body's size, frame counts, no inverted tetrahedron (min det(I + grad u) > 0), peaks at most
+    ``max_peak`` [m]; with ``require_complete`` every planned sequence present. Returns a report
+    {passed, problems [str], sequences, frames, max_peak_m, min_det, mean_speed_mps}."""
+    import zarr
+
+    from simgen.dataset.storage import arrays_checksum
+    from simgen.dataset.store import node_arrays
+
+    loc, attrs, manifest = _open(path)
+    problems = []
+    listed = manifest["sequences"]
+    on_disk = {n for n in loc.listdir("sequences") if n != "zarr.json"}
+    for node in sorted(on_disk - set(listed)):
+        problems.append(f"sequences/{node}: in the store but not in the manifest")
+    if require_complete:
+        spec = attrs["spec"]
+        plan = [sequence_id(m, r, s["id"]) for m in spec["motions"] for r in ((False, True) if spec["mirror"]
+                                                                                else (False,)) for s in spec["shapes"]]
+        missing = [n for n in plan if n not in listed]
+        if missing:
+            problems.append(f"{len(missing)} planned sequences missing (first: {missing[0]})")
+    V = None
+    frames, peak, min_det, speeds = 0, 0.0, np.inf, []
+    for k, (node, entry) in enumerate(sorted(listed.items())):
+        rel = f"sequences/{node}"
+        commit = loc.committed(rel)
+        if commit is None:
+            problems.append(f"{rel}: listed in the manifest but not committed")
+            continue
+        arrays = node_arrays(loc, rel)
+        if arrays_checksum(arrays) != entry["checksum"]:
+            problems.append(f"{rel}: checksum differs from the manifest's (corrupt)")
+            continue
+        d, a = arrays["displacements"], dict(zarr.open_group(loc.url(rel), mode="r").attrs)
+        V = d.shape[1] if V is None else V
+        if d.ndim != 3 or d.shape[1:] != (V, 3) or len(d) != a["frames"] or len(arrays["poses"]) != len(d):
+            problems.append(f"{rel}: displacements {d.shape} and poses {arrays['poses'].shape} disagree with "
+                            f"{a['frames']} frames of {V} vertices")
+        if not all(np.all(np.isfinite(x)) for x in arrays.values()):
+            problems.append(f"{rel}: non-finite values")
+            continue
+        p = float(np.linalg.norm(d, axis=-1).max(initial=0.0))
+        if p > max_peak:
+            problems.append(f"{rel}: a vertex moves {100 * p:.1f} cm from its skinned place (limit {100 * max_peak:g} cm)")
+        if not a["stats"]["min_det"] > 0:
+            problems.append(f"{rel}: a tetrahedron inverted (min det {a['stats']['min_det']:.3g})")
+        frames += len(d)
+        peak = max(peak, p)
+        min_det = min(min_det, a["stats"]["min_det"])
+        speeds.append(a["stats"]["mean_speed_mps"])
+        if progress is not None:
+            progress(k + 1, len(listed))
+    return {"path": str(path), "passed": not problems, "problems": problems, "sequences": len(listed),
+            "frames": frames, "max_peak_m": peak, "min_det": None if not np.isfinite(min_det) else float(min_det),
+            "mean_speed_mps": float(np.mean(speeds)) if speeds else None, "failed": sorted(manifest.get("failed", {}))}
