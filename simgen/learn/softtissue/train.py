@@ -13,8 +13,9 @@ Three stages, in order, into one model folder OUT/softtissue/:
 OUT/softtissue/ holds ``pose_ae/``, ``soft_ae/``, ``regressor/`` (each model.pt + config.json,
 :mod:`simgen.learn.checkpoint`), ``log.csv`` (one row per epoch of each stage), ``split.json`` and
 ``train_state.pt`` (the stage, epoch and step reached, every model, the optimiser: rerunning resumes;
-other settings are refused unless ``resume=False``). Not done: motion transfer across subjects
-(section 3.3.2) and mirroring (section 3.4.1); see docs/learn.md.
+other settings are refused unless ``resume=False``). A simulated store has every shape perform every
+motion and its mirror (what sections 3.3.2 and 3.4.1 add to Dyna); for Dyna files neither is done
+(docs/learn.md).
 """
 
 from __future__ import annotations
