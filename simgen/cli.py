@@ -1174,6 +1174,25 @@ def eval_compare_cmd(
                      progress_factory=_progress)
 
 
+@eval_app.command("softtissue")
+def eval_softtissue_cmd(
+    models: str = typer.Option(..., "--models", help="Trained SoftSMPL folders (`simgen train softtissue`), 'a,b' "
+                               "or 'a b': one split, any code sizes (Table 3.1 at 25/50/100)."),
+    data: str = typer.Option(..., "--data", help="The data they were trained on: a soft-tissue store, 'synthetic' "
+                             "or a Dyna .h5 file (with --body)."),
+    out: Path = typer.Option(Path("simgen-eval-softtissue"), "--out", help="Output folder (tables, JSON, plot)."),
+    body: Optional[str] = typer.Option(None, "--body", help="SMPL body file (.pkl/.npz) for a Dyna file."),
+    device: str = typer.Option("cpu", "--device", help="Torch device the models run and are timed on."),
+    timing_frames: int = typer.Option(100, "--timing-frames", help="Frames timed.", rich_help_panel=EXPERT),
+    max_frames: Optional[int] = _T_MAXF,
+) -> None:
+    """AE against PCA (Table 3.1), the regressor on held-out sequences, speed against body mass (Fig. 3.7), ms per frame."""
+    from simgen.learn.softtissue._cli import run_eval_softtissue
+
+    run_eval_softtissue(models=models, data=data, body=body, out=out, device=device, max_frames=max_frames,
+                        timing_frames=timing_frames, echo=typer.echo, progress_factory=_progress)
+
+
 @eval_app.command("garment")
 def eval_garment_cmd(
     model: Path = typer.Option(..., "--model", help="Trained model folder (`simgen train fit|wrinkle --out`)."),

@@ -260,3 +260,37 @@ def test_split_and_data_checks(data):
         data.split(test_motions=["swim"])
     with pytest.raises(InputError, match="vertices"):
         SoftTissueData([data.sequences[0]], data.body, data.faces, data.template[:10])
+
+
+def test_eval_softtissue_tables(body, data, tmp_path):
+    # Two code sizes of one split: Table 3.1's PCA at 25/50/100 and at each model's size, each AE at its
+    # own; the regressor's rows against quantities computed here.
+    from simgen.learn.softtissue.evaluate import evaluate_softtissue
+    from simgen.learn.softtissue.train import train_softtissue
+
+    for latent in (4, 8):
+        train_softtissue(data, tmp_path / f"m{latent}", body=body, config=_tiny_config(ae_latent=latent))
+    rep = evaluate_softtissue([tmp_path / "m4", tmp_path / "m8"], data, tmp_path / "eval", body=body,
+                              timing_frames=10)
+    assert rep["held_out"] == {"motions": ["walk"], "subjects": []}
+    assert sorted(rep["pca_mm"]) == [4, 8, 25, 50, 100]
+    errs = [rep["pca_mm"][k]["held_out_motion"] for k in sorted(rep["pca_mm"])]
+    assert all(b <= a + 1e-9 for a, b in zip(errs, errs[1:]))   # nested subspaces: never worse with more
+    assert [m["ae_latent"] for m in rep["models"]] == [4, 8]
+    test = [s for s in data.sequences if s.motion == "walk"]
+    for m in rep["models"]:
+        assert np.isfinite(m["ae_mm"]["held_out_motion"]) and m["timing"]["ms_per_frame"] > 0
+        rows = {r["sequence"]: r for r in m["sequences"]}
+        assert set(rows) == {s.name for s in test}
+        for s in test:
+            r = rows[s.name]
+            assert r["no_soft_tissue_mm"] == pytest.approx(1e3 * np.linalg.norm(s.displacements, axis=-1).mean(),
+                                                           rel=1e-5)
+            speed = np.linalg.norm(np.diff(s.displacements, axis=0), axis=-1).mean() * s.fps
+            assert r["speed_true_mps"] == pytest.approx(speed, rel=1e-5) and np.isfinite(r["error_mm"])
+    md = (tmp_path / "eval" / "softtissue_eval.md").read_text()
+    assert "3.82 / 3.02" in md and "| 8 |" in md
+    assert (tmp_path / "eval" / "speed_vs_mass.png").stat().st_size > 1000
+    with pytest.raises(InputError, match="one split"):
+        train_softtissue(data, tmp_path / "other", body=body, config=_tiny_config(test_motions="jump"))
+        evaluate_softtissue([tmp_path / "m4", tmp_path / "other"], data, tmp_path / "eval2", body=body)

@@ -5,9 +5,11 @@ from __future__ import annotations
 from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
+
 from simgen.errors import InputError
 
-__all__ = ["run_train_softtissue", "load_softtissue_source"]
+__all__ = ["run_train_softtissue", "run_eval_softtissue", "load_softtissue_source"]
 
 
 def load_softtissue_source(data: str, body_file: str | None, *, max_frames: int | None = None, device: str = "cpu",
@@ -75,3 +77,23 @@ def run_train_softtissue(*, data: str, body: str | None, out: Path, device: str,
     losses = ", ".join(f"{k} {v:.4g}" for k, v in result.losses.items() if v is not None)
     echo(f"SoftSMPL: reached {result.stage}, stopped: {result.stopped}; last training losses: {losses or '-'}")
     echo(f"model: {result.folder}")
+
+
+def run_eval_softtissue(*, models: str, data: str, body: str | None, out: Path, device: str,
+                        max_frames: int | None, timing_frames: int, echo, progress_factory) -> None:
+    from simgen.learn.softtissue.evaluate import evaluate_softtissue
+
+    folders = [m for part in models.replace(",", " ").split() for m in [part] if m]
+    progress, update = progress_factory(f"reading {data}", 1)
+    with progress:
+        dataset, model_body = load_softtissue_source(data, body, max_frames=max_frames, device=device,
+                                                     progress=lambda done, total: update(done, total))
+    report = evaluate_softtissue(folders, dataset, out, body=model_body, device=device, timing_frames=timing_frames)
+    for m in report["models"]:
+        errs = [s["error_mm"] for s in m["sequences"]]
+        base = [s["no_soft_tissue_mm"] for s in m["sequences"]]
+        echo(f"{m['folder']}: AE {m['ae_latent']} "
+             + ", ".join(f"{g} {v:.2f} mm" for g, v in m["ae_mm"].items())
+             + f"; regressor {np.mean(errs):.2f} mm (no soft tissue {np.mean(base):.2f} mm) over {len(errs)} "
+               f"held-out sequences; {m['timing']['ms_per_frame']:.2f} ms per frame")
+    echo(f"tables: {Path(out) / 'softtissue_eval.md'}; plot: {Path(out) / 'speed_vs_mass.png'}")

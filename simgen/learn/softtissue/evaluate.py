@@ -1,0 +1,209 @@
+"""`simgen eval softtissue`: SoftSMPL models against their ground truth, beside the thesis (ch. 3).
+
+- Table 3.1: reconstruction error of the soft-tissue autoencoder against PCA of the same size, on
+  each held-out group (motions, shapes, both). PCA is computed here at 25, 50 and 100 dimensions
+  and at each model's code size, from the training displacements (at most ``PCA_FRAMES`` frames,
+  evenly strided); each model's autoencoder is compared at its own size.
+- The regressor on every held-out sequence: mean vertex error of Delta against the ground truth
+  (the unposed frame; the rig's part is the same for both), beside "no soft tissue" (Delta = 0, the
+  body model alone); the mean vertex speed of the predicted and true Delta against the shape's
+  body-mass proxy (thesis Fig. 3.7: heavier bodies move more).
+- Runtime per frame of the whole pipeline (``SoftSMPL.predict``; thesis 4.8 ms) and model sizes.
+
+Errors are mean per-vertex Euclidean distances [mm] over frames and vertices (the thesis's Table
+3.1 measure); speeds are mean |Delta_t - Delta_{t-1}| x fps [m/s] over frames and vertices.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from simgen.errors import InputError
+
+__all__ = ["evaluate_softtissue", "THESIS_TABLE_3_1", "PCA_SIZES"]
+
+#: Thesis Table 3.1 (Dyna, held-out sequences): mean vertex error [mm] by subspace size.
+THESIS_TABLE_3_1 = {"pca": {25: 3.82, 50: 3.17, 100: 2.38}, "ae": {25: 3.02, 50: 2.58, 100: 2.09}}
+THESIS_RUNTIME_MS = 4.8
+PCA_SIZES = (25, 50, 100)
+PCA_FRAMES = 2000
+
+
+def _error_mm(a: np.ndarray, b: np.ndarray) -> float:
+    return float(1e3 * np.linalg.norm(np.asarray(a, np.float64) - np.asarray(b, np.float64), axis=-1).mean())
+
+
+def _speed(d: np.ndarray, fps: float) -> float:
+    return float(np.linalg.norm(np.diff(d, axis=0), axis=-1).mean() * fps) if len(d) > 1 else 0.0
+
+
+def _frames(data, limit: int | None = None) -> np.ndarray:
+    x = np.concatenate([s.displacements for s in data.sequences]).astype(np.float64)
+    if limit is not None and len(x) > limit:
+        x = x[np.linspace(0, len(x) - 1, limit).round().astype(int)]
+    return x
+
+
+def _pca_table(train, groups: dict, sizes: list[int]) -> dict:
+    """{size: {group: mm}} of PCA reconstructions (projection on the training basis)."""
+    from simgen.learn.softtissue.models import pca_basis
+
+    X = _frames(train, PCA_FRAMES)
+    V = X.shape[1]
+    out = {}
+    for k in sizes:
+        mean, comps, scales = pca_basis(X, k)
+        comps = comps[scales > 1e-8]        # the data's own directions (fewer when it has fewer frames)
+        row = {}
+        for name, g in groups.items():
+            Y = _frames(g).reshape(-1, 3 * V) - mean
+            row[name] = _error_mm(((Y @ comps.T) @ comps).reshape(-1, V, 3), Y.reshape(-1, V, 3))
+        out[k] = row
+    return out
+
+
+@torch.no_grad()
+def _ae_row(model, groups: dict, batch: int = 256) -> dict:
+    row = {}
+    dev = model.device
+    for name, g in groups.items():
+        errs, n = 0.0, 0
+        for s in g.sequences:
+            d = torch.as_tensor(s.displacements, dtype=torch.float32, device=dev)
+            for i in range(0, len(d), batch):
+                rec = model.soft_ae(d[i:i + batch])
+                errs += float(torch.linalg.norm(rec - d[i:i + batch], dim=-1).mean()) * len(d[i:i + batch])
+                n += len(d[i:i + batch])
+        row[name] = 1e3 * errs / max(n, 1)
+    return row
+
+
+def _regressor_rows(model, groups: dict, body, density: float) -> list[dict]:
+    from simgen.softtissue.model import body_mass_proxy
+
+    rows = []
+    for name, g in groups.items():
+        for s in g.sequences:
+            pred = model.predict(s.betas, s.poses, s.trans, s.fps).cpu().numpy()
+            betas = np.zeros(body.num_betas)
+            betas[:min(len(s.betas), body.num_betas)] = s.betas[:body.num_betas]
+            rows.append({"group": name, "sequence": s.name, "motion": s.motion, "subject": s.subject,
+                         "body_mass_proxy": float(body_mass_proxy(body, betas, density)),
+                         "error_mm": _error_mm(pred, s.displacements),
+                         "no_soft_tissue_mm": _error_mm(np.zeros_like(s.displacements), s.displacements),
+                         "speed_true_mps": _speed(s.displacements, s.fps), "speed_pred_mps": _speed(pred, s.fps)})
+    return rows
+
+
+def _timing(model, seq, frames: int) -> dict:
+    T = min(frames, seq.num_frames)
+    args = (seq.betas, seq.poses[:T], seq.trans[:T], seq.fps)
+    model.predict(*args)                                   # warm-up (allocation, kernels)
+    sync = torch.cuda.synchronize if model.device.type == "cuda" else (lambda: None)
+    sync()
+    t0 = time.perf_counter()
+    model.predict(*args)
+    sync()
+    sizes = {name: sum(p.numel() for p in getattr(model, name).parameters())
+             for name in ("pose_ae", "soft_ae", "regressor")}
+    return {"device": str(model.device), "frames": T, "ms_per_frame": 1e3 * (time.perf_counter() - t0) / T,
+            "parameters": sizes, "megabytes_float32": 4 * sum(sizes.values()) / 1e6}
+
+
+def evaluate_softtissue(models, data, out, *, body, device: str = "cpu", timing_frames: int = 100) -> dict:
+    """Evaluate trained SoftSMPL folders on ``data`` (:class:`SoftTissueData`), held out as the
+    first model was (its split.json; every model must share it); write softtissue_eval.json and .md
+    and speed_vs_mass.png into ``out``; return the report (module docstring)."""
+    from simgen.learn.softtissue.train import load_softtissue_model
+    from simgen.softtissue.params import FleshParams
+
+    folders = [Path(m) for m in models]
+    if not folders:
+        raise InputError("--models needs at least one trained SoftSMPL folder")
+    loaded, split = [], None
+    for f in folders:
+        m = load_softtissue_model(f, identity={"body": {"id": body.name, "hash": body.hash}}, device=device)
+        s = json.loads((m.folder / "split.json").read_text())
+        held = (sorted(s["test_motions"]), sorted(s["test_subjects"]))
+        if split is not None and held != split:
+            raise InputError(f"{f} was trained with held-out {held}, {folders[0]} with {split}: evaluate models of "
+                             f"one split together")
+        split = held
+        loaded.append((f, m))
+    train, groups = data.split(*split)
+    if not groups:
+        raise InputError(f"the models hold out nothing of this data (test motions {split[0]}, subjects {split[1]})")
+    sizes = sorted(set(PCA_SIZES) | {m.soft_ae.latent for _, m in loaded})
+    report = {"data": data.source, "held_out": {"motions": split[0], "subjects": split[1]},
+              "train_frames": int(sum(s.num_frames for s in train.sequences)),
+              "pca_frames": int(min(PCA_FRAMES, sum(s.num_frames for s in train.sequences))),
+              "pca_mm": _pca_table(train, groups, sizes),
+              "models": [], "thesis": {"table_3_1_mm": THESIS_TABLE_3_1, "runtime_ms": THESIS_RUNTIME_MS}}
+    longest = max((s for g in groups.values() for s in g.sequences), key=lambda s: s.num_frames)
+    for f, m in loaded:
+        report["models"].append({"folder": str(f), "ae_latent": m.soft_ae.latent, "ae_mm": _ae_row(m, groups),
+                                 "sequences": _regressor_rows(m, groups, body, FleshParams().density),
+                                 "timing": _timing(m, longest, timing_frames)})
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "softtissue_eval.json").write_text(json.dumps(report, indent=2) + "\n")
+    (out / "softtissue_eval.md").write_text(_markdown(report))
+    _plot(report, out / "speed_vs_mass.png")
+    return report
+
+
+def _markdown(r: dict) -> str:
+    groups = list(next(iter(r["pca_mm"].values())))
+    lines = [f"# SoftSMPL on {r['data']}", "",
+             f"Held out: motions {', '.join(r['held_out']['motions']) or '-'}; shapes "
+             f"{', '.join(r['held_out']['subjects']) or '-'}. PCA from {r['pca_frames']} of {r['train_frames']} "
+             f"training frames. Mean vertex error [mm].", "",
+             "## Table 3.1: soft-tissue subspace", "",
+             "| dims | " + " | ".join(f"PCA {g}" for g in groups) + " | autoencoder (" + ", ".join(groups)
+             + ") | thesis PCA / AE (Dyna) |", "|---" * (len(groups) + 3) + "|"]
+    for k, row in r["pca_mm"].items():
+        ae = [m for m in r["models"] if m["ae_latent"] == int(k)]
+        ae_text = "; ".join(", ".join(f"{v:.2f}" for v in m["ae_mm"].values()) for m in ae) or "-"
+        th = THESIS_TABLE_3_1
+        thesis = f"{th['pca'][int(k)]} / {th['ae'][int(k)]}" if int(k) in th["pca"] else "-"
+        lines.append(f"| {k} | " + " | ".join(f"{row[g]:.2f}" for g in groups) + f" | {ae_text} | {thesis} |")
+    for m in r["models"]:
+        t = m["timing"]
+        lines += ["", f"## Regressor: {m['folder']}", "",
+                  f"{t['ms_per_frame']:.2f} ms per frame on {t['device']} (thesis {THESIS_RUNTIME_MS} ms); "
+                  f"{sum(t['parameters'].values()):,} parameters ({t['megabytes_float32']:.1f} MB in float32: "
+                  + ", ".join(f"{k} {v:,}" for k, v in t["parameters"].items()) + ").", "",
+                  "| group | sequence | body-mass proxy | error mm | no soft tissue mm | speed true / predicted [cm/s] |",
+                  "|---|---|---:|---:|---:|---:|"]
+        for s in m["sequences"]:
+            lines.append(f"| {s['group']} | {s['sequence']} | {s['body_mass_proxy']:.1f} | {s['error_mm']:.2f} | "
+                         f"{s['no_soft_tissue_mm']:.2f} | {100 * s['speed_true_mps']:.2f} / "
+                         f"{100 * s['speed_pred_mps']:.2f} |")
+    return "\n".join(lines) + "\n"
+
+
+def _plot(r: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 4), dpi=120)
+    first = r["models"][0]["sequences"]
+    ax.scatter([s["body_mass_proxy"] for s in first], [100 * s["speed_true_mps"] for s in first], c="k",
+               marker="o", label="ground truth")
+    for m in r["models"]:
+        ax.scatter([s["body_mass_proxy"] for s in m["sequences"]], [100 * s["speed_pred_mps"] for s in m["sequences"]],
+                   marker="x", label=f"{Path(m['folder']).name} (AE {m['ae_latent']})")
+    ax.set_xlabel("body-mass proxy [kg/m^2]")
+    ax.set_ylabel("mean vertex speed of Delta [cm/s]")
+    ax.set_title("Soft-tissue speed against body mass (thesis Fig. 3.7)")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
