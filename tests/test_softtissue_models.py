@@ -294,3 +294,15 @@ def test_eval_softtissue_tables(body, data, tmp_path):
     with pytest.raises(InputError, match="one split"):
         train_softtissue(data, tmp_path / "other", body=body, config=_tiny_config(test_motions="jump"))
         evaluate_softtissue([tmp_path / "m4", tmp_path / "other"], data, tmp_path / "eval2", body=body)
+
+
+def test_pca_frames_stride_a_list_of_sequences_like_their_concatenation(monkeypatch):
+    from simgen.learn.softtissue import models
+
+    seqs = [np.random.default_rng(k).normal(size=(n, 5, 3)) for k, n in enumerate((7, 1, 12))]
+    whole = np.concatenate(seqs)
+    assert np.array_equal(models.pca_frames(seqs), whole)             # fewer than the limit: all
+    monkeypatch.setattr(models, "PCA_FRAMES", 6)
+    picked = models.pca_frames(seqs)
+    assert np.array_equal(picked, models.pca_frames(whole)) and len(picked) == 6
+    assert np.array_equal(picked[0], whole[0]) and np.array_equal(picked[-1], whole[-1])

@@ -2,8 +2,9 @@
 
 - Table 3.1: reconstruction error of the soft-tissue autoencoder against PCA of the same size, on
   each held-out group (motions, shapes, both). PCA is computed here at 25, 50 and 100 dimensions
-  and at each model's code size, from the training displacements (at most ``PCA_FRAMES`` frames,
-  evenly strided); each model's autoencoder is compared at its own size.
+  and at each model's code size, from the training displacements (at most
+  :data:`~simgen.learn.softtissue.models.PCA_FRAMES` frames, evenly strided, as the autoencoder's
+  initialisation); each model's autoencoder is compared at its own size.
 - The regressor on every held-out sequence: mean vertex error of Delta against the ground truth
   (the unposed frame; the rig's part is the same for both), beside "no soft tissue" (Delta = 0, the
   body model alone); the mean vertex speed of the predicted and true Delta against the shape's
@@ -31,7 +32,6 @@ __all__ = ["evaluate_softtissue", "THESIS_TABLE_3_1", "PCA_SIZES"]
 THESIS_TABLE_3_1 = {"pca": {25: 3.82, 50: 3.17, 100: 2.38}, "ae": {25: 3.02, 50: 2.58, 100: 2.09}}
 THESIS_RUNTIME_MS = 4.8
 PCA_SIZES = (25, 50, 100)
-PCA_FRAMES = 2000
 
 
 def _error_mm(a: np.ndarray, b: np.ndarray) -> float:
@@ -42,18 +42,15 @@ def _speed(d: np.ndarray, fps: float) -> float:
     return float(np.linalg.norm(np.diff(d, axis=0), axis=-1).mean() * fps) if len(d) > 1 else 0.0
 
 
-def _frames(data, limit: int | None = None) -> np.ndarray:
-    x = np.concatenate([s.displacements for s in data.sequences]).astype(np.float64)
-    if limit is not None and len(x) > limit:
-        x = x[np.linspace(0, len(x) - 1, limit).round().astype(int)]
-    return x
+def _frames(data) -> np.ndarray:
+    return np.concatenate([s.displacements for s in data.sequences]).astype(np.float64)
 
 
 def _pca_table(train, groups: dict, sizes: list[int]) -> dict:
     """{size: {group: mm}} of PCA reconstructions (projection on the training basis)."""
-    from simgen.learn.softtissue.models import pca_basis
+    from simgen.learn.softtissue.models import pca_basis, pca_frames
 
-    X = _frames(train, PCA_FRAMES)
+    X = pca_frames([s.displacements for s in train.sequences])
     V = X.shape[1]
     out = {}
     for k in sizes:
@@ -119,6 +116,7 @@ def evaluate_softtissue(models, data, out, *, body, device: str = "cpu", timing_
     """Evaluate trained SoftSMPL folders on ``data`` (:class:`SoftTissueData`), held out as the
     first model was (its split.json; every model must share it); write softtissue_eval.json and .md
     and speed_vs_mass.png into ``out``; return the report (module docstring)."""
+    from simgen.learn.softtissue.models import PCA_FRAMES
     from simgen.learn.softtissue.train import load_softtissue_model
     from simgen.softtissue.params import FleshParams
 

@@ -32,7 +32,7 @@ from simgen.learn.models import INPUT_STD_FLOOR, MODEL_KINDS
 
 __all__ = ["LAMBDA_NORM", "ResidualUnit", "SoftTissueAE", "PoseAE", "SoftTissueRegressor", "face_normals",
            "normal_loss", "surface_loss", "reconstruction_loss", "pose_ae_loss", "regression_loss",
-           "motion_descriptor", "pca_basis", "descriptor_size"]
+           "motion_descriptor", "pca_basis", "pca_frames", "PCA_FRAMES", "descriptor_size"]
 
 LAMBDA_NORM = 1000.0  # eq. 3.8
 
@@ -118,10 +118,29 @@ class ResidualUnit(nn.Module):
         return x + self.l2(self.drop(torch.relu(self.l1(x))))
 
 
+#: Frames PCA is computed from at most (evenly strided): an SVD of N x 3V costs N^2 3V, and a store
+#: of 48k frames of a 13k-vertex body would not fit in memory as float64.
+PCA_FRAMES = 2000
+
+
+def pca_frames(displacements) -> np.ndarray:
+    """At most :data:`PCA_FRAMES` frames of ``displacements`` (an array (N, ...) or a list of
+    sequences (T_i, ...), taken as one), evenly strided (all when fewer), without copying the rest."""
+    parts = [displacements] if isinstance(displacements, np.ndarray) else list(displacements)
+    sizes = np.array([len(p) for p in parts])
+    total = int(sizes.sum())
+    pick = np.arange(total) if total <= PCA_FRAMES else np.linspace(0, total - 1, PCA_FRAMES).round().astype(int)
+    owner = np.searchsorted(np.cumsum(sizes), pick, side="right")
+    local = pick - np.r_[0, np.cumsum(sizes)][owner]
+    return np.stack([parts[o][i] for o, i in zip(owner, local)]) if total else np.zeros((0,))
+
+
 def pca_basis(displacements: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(mean (3V,), components (k, 3V) orthonormal rows, scales (k,) = singular values / sqrt(N)) of
-    the rows of ``displacements`` (N, V, 3) or (N, 3V). Components beyond the data's rank have a scale
-    floored at 1e-8 (they encode nothing)."""
+    the rows of ``displacements`` (N, V, 3) or (N, 3V), at most :data:`PCA_FRAMES` of them
+    (:func:`pca_frames`). Components beyond the data's rank have a scale floored at 1e-8 (they
+    encode nothing)."""
+    displacements = pca_frames(displacements)
     X = np.asarray(displacements, dtype=np.float64).reshape(len(displacements), -1)
     mean = X.mean(0)
     _, s, Vt = np.linalg.svd(X - mean, full_matrices=False)

@@ -34,7 +34,7 @@ from simgen.errors import InputError
 from simgen.learn.checkpoint import check_identity, load_model, read_config, save_model
 from simgen.learn.softtissue.data import SoftTissueData
 from simgen.learn.softtissue.models import (LAMBDA_NORM, PoseAE, SoftTissueAE, SoftTissueRegressor,
-                                            descriptor_size, motion_descriptor, pose_ae_loss,
+                                            descriptor_size, motion_descriptor, pca_frames, pose_ae_loss,
                                             reconstruction_loss, regression_loss)
 from simgen.learn.train import STATE_FILE, _device, _load_state, _Logger
 from simgen.settings import setting, validate
@@ -191,7 +191,7 @@ class _Run:
                                     config.ae_dropout).to(dev),
             "regressor": SoftTissueRegressor(descriptor_size(config.pose_latent), B, config.ae_latent,
                                              config.reg_hidden, config.reg_layers).to(dev)}
-        self.nets["soft_ae"].init_pca(np.concatenate([s.displacements for s in self.train.sequences]))
+        self.nets["soft_ae"].init_pca(pca_frames([s.displacements for s in self.train.sequences]))
 
         def frames(d: SoftTissueData):
             if not d.sequences:
