@@ -811,6 +811,41 @@ def export_usd(
 
 
 # --------------------------------------------------------------------------------------------- view
+@export_app.command("softtissue")
+def export_softtissue_cmd(
+    data: str = typer.Option(..., "--data", help="A soft-tissue store (`simgen dataset generate softtissue`), "
+                             "'synthetic' or a Dyna .h5 file (with --body)."),
+    sequence: str = typer.Option(..., "--sequence", help="Sequence id (`simgen dataset info STORE` lists them)."),
+    out: Path = typer.Option(..., "--out", help="Output folder: SEQUENCE.usdc and SEQUENCE.mp4."),
+    model_dir: Optional[Path] = typer.Option(None, "--model", help="A trained SoftSMPL folder: its prediction "
+                                             "beside the ground truth."),
+    body: Optional[str] = typer.Option(None, "--body", help="SMPL body file (.pkl/.npz) for a Dyna file."),
+    frames: Optional[int] = typer.Option(None, "--frames", help="Use only the first N frames."),
+    scale: float = typer.Option(2.0, "--scale", help="[cm] |Delta| drawn in the colour map's top colour."),
+    no_video: bool = typer.Option(False, "--no-video", help="Only the USD (the MP4 needs pyvista and OpenGL)."),
+) -> None:
+    """The body with its soft tissue, coloured by the displacement's magnitude, as USD and MP4."""
+    from simgen.learn.softtissue._cli import load_softtissue_source
+    from simgen.learn.softtissue.export import export_softtissue
+
+    if not scale > 0:
+        raise InputError(f"--scale must be > 0 cm, got {scale}")
+    data_set, model_body = load_softtissue_source(data, body)
+    model = None
+    if model_dir is not None:
+        from simgen.learn.softtissue.train import load_softtissue_model
+
+        model = load_softtissue_model(model_dir, identity={"body": {"id": model_body.name, "hash": model_body.hash}})
+    bar, update = _progress("rendering", 1)
+    with bar:
+        paths = export_softtissue(data_set, sequence, out, body=model_body, model=model, mp4=not no_video,
+                                  frames=frames, scale=scale / 100.0, progress=update)
+    for key in ("usd", "mp4"):
+        if paths[key] is not None:
+            typer.echo(f"{key}: {paths[key]}")
+    typer.echo("peak |Delta|: " + ", ".join(f"{k} {v:.2f} cm" for k, v in paths["meta"]["peak_cm"].items()))
+
+
 @app.command("view")
 def view_cmd(
     path: str = typer.Argument(..., help="A simulation .npz or .usdc, a dataset store (or a folder of stores), "

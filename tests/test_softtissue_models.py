@@ -306,3 +306,30 @@ def test_pca_frames_stride_a_list_of_sequences_like_their_concatenation(monkeypa
     picked = models.pca_frames(seqs)
     assert np.array_equal(picked, models.pca_frames(whole)) and len(picked) == 6
     assert np.array_equal(picked[0], whole[0]) and np.array_equal(picked[-1], whole[-1])
+
+
+def test_posing_inverts_unposing_and_the_export_colours_the_magnitude(body, data, tmp_path):
+    from simgen.body.torch_lbs import TorchBody
+    from simgen.io.usd import read_usd_meshes
+    from simgen.learn.softtissue.dyna import posed_vertices, unposed_displacements
+    from simgen.learn.softtissue.export import export_softtissue
+
+    s = max(data.sequences, key=lambda q: np.abs(q.displacements).max())
+    tb = TorchBody(body, dtype=torch.float64)
+    b = torch.as_tensor(s.betas, dtype=torch.float64)
+    p = torch.as_tensor(s.poses, dtype=torch.float64)
+    t = torch.as_tensor(s.trans, dtype=torch.float64)
+    d = torch.as_tensor(s.displacements, dtype=torch.float64)
+    x = posed_vertices(tb, d, b, p, t)
+    assert torch.allclose(unposed_displacements(tb, x, b, p, t), d, atol=1e-9)   # eq. 3.3 undoes eq. 3.2
+    paths = export_softtissue(data, s.name, tmp_path, body=body, mp4=False, scale=0.01)
+    track = read_usd_meshes(paths["usd"])["body_ground_truth"]
+    assert np.allclose(track.points, x.numpy(), atol=1e-5)
+    mag = np.linalg.norm(s.displacements, axis=-1)
+    assert mag.max() > 0
+    still, moving = np.unravel_index(mag.argmin(), mag.shape), np.unravel_index(mag.argmax(), mag.shape)
+    # The colour map runs from grey (no displacement) to red (at the scale): red rises with |Delta|.
+    assert track.colors[moving][0] >= track.colors[still][0] and track.colors[moving][2] < track.colors[still][2]
+    assert paths["meta"]["peak_cm"]["ground_truth"] == pytest.approx(100 * mag.max(), rel=1e-5)
+    with pytest.raises(InputError, match="no sequence"):
+        export_softtissue(data, "nothing", tmp_path, body=body, mp4=False)

@@ -95,6 +95,16 @@ def unposed_displacements(tb, vertices, betas, poses, trans):
     return unposed - _rest_body(tb, betas[None], poses)
 
 
+def posed_vertices(tb, delta, betas, poses, trans):
+    """x = W(T + B_s + B_p + Delta) [m], (N, V, 3) (eq. 3.2; the inverse of
+    :func:`unposed_displacements`), for Delta (N, V, 3) [m], betas (B,), poses (N, 72) [rad] and
+    trans (N, 3) [m] (torch tensors)."""
+    from simgen.learn.skinning import lbs_torch
+
+    _, _, transforms = tb(betas[None], poses, trans)
+    return lbs_torch(_rest_body(tb, betas[None], poses) + delta, tb.weights, transforms)
+
+
 def _procrustes(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Rotation R and translation t minimising |R src + t - dst| (rows are points)."""
     cs, cd = src.mean(0), dst.mean(0)

@@ -137,16 +137,14 @@ class SoftSMPL(torch.nn.Module):
     def posed(self, body, betas, poses, trans, fps: float) -> torch.Tensor:
         """Posed vertices [m], (T, V, 3): W(T + B_s + B_p + Delta) with the body model (eq. 3.2)."""
         from simgen.body.torch_lbs import TorchBody
-        from simgen.learn.skinning import lbs_torch
-        from simgen.learn.softtissue.dyna import _rest_body
+        from simgen.learn.softtissue.dyna import posed_vertices
 
         tb = TorchBody(body, device=self.device)
         delta = self.predict(betas, poses, trans, fps)
         p = torch.as_tensor(np.asarray(poses, dtype=np.float32), device=self.device).reshape(-1, 72)
         t = torch.as_tensor(np.asarray(trans, dtype=np.float32), device=self.device).reshape(-1, 3)
-        b = torch.as_tensor(np.asarray(betas, dtype=np.float32), device=self.device).reshape(1, -1)
-        _, _, A = tb(b, p, t)
-        return lbs_torch(_rest_body(tb, b, p) + delta, tb.weights, A)
+        b = torch.as_tensor(np.asarray(betas, dtype=np.float32), device=self.device).reshape(-1)
+        return posed_vertices(tb, delta, b, p, t)
 
 
 def load_softtissue_model(folder: str | Path, *, identity: dict | None = None, device="cpu") -> SoftSMPL:
