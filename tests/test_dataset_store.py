@@ -612,3 +612,31 @@ def test_one_pool_keeps_its_slots_full(tmp_path, monkeypatch):
     assert [b for _, b in busy] == [2] * frames + [2] * frames + [1] * frames and {n for n, _ in busy} == {2}
     assert seen[-1][0] == seen[-1][1] == rep.cloth_frames
     assert check_dataset(tmp_path / "b").passed
+
+
+def test_a_rerun_resumes_a_retry_at_its_attempt(tmp_path, monkeypatch):
+    """A run that stops after a job failed (here it crashes as its retry pool starts) leaves the
+    failure in the manifest; the next run simulates the job at the next attempt, not from the first."""
+    from simgen.sim.pool import SimulationPool
+
+    calls = _patch_pools(monkeypatch, lambda j, r: _injected(j) if j.id == "walk_fast__b1p2" and j.attempt == 1
+                         else r)
+    submit = SimulationPool.submit
+
+    def crash_on_retry(self, job, tag=None):
+        if tag.attempt > 1:
+            raise RuntimeError("the machine went away")
+        return submit(self, job, tag)
+
+    monkeypatch.setattr(SimulationPool, "submit", crash_on_retry)
+    spec = micro()
+    with pytest.raises(RuntimeError, match="went away"):
+        generate_dataset(spec, out=str(tmp_path / "s"))
+    m = json.loads((tmp_path / "s" / "manifest.json").read_text())
+    assert m["failed"]["sequence:walk_fast__b1p2"]["attempts"] == 1 and set(m["sequences"]) == {"walk_fast__zero"}
+    monkeypatch.setattr(SimulationPool, "submit", submit)
+    calls = _patch_pools(monkeypatch, lambda j, r: r)
+    (rep,) = generate_dataset(spec, out=str(tmp_path / "s"))
+    assert rep.pending == 0 and not rep.failed and rep.written == 1
+    assert _runs(calls) == [(["walk_fast__b1p2"], 2 * spec.substeps)]
+    assert open_dataset(tmp_path / "s").sequence("walk_fast__b1p2")["attrs"]["stats"]["attempts"] == 2

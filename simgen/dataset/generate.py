@@ -27,7 +27,7 @@ from __future__ import annotations
 import hashlib
 import json
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 
@@ -276,7 +276,8 @@ def generate_dataset(spec, out: str | None = None, *, ray: str | None = None, ma
                     say(f"{loc.root}: resumed ({', '.join(f'{k} {v}' for k, v in rec.items() if v)})")
                 seq_total = sum(j.kind == "sequence" for j in plan)
                 done_before = len(store.manifest["sequences"])
-                pending = [j for j in plan if not store.done(j.kind, j.id)]
+                pending = [_resumed(j, store.manifest["failed"], spec.max_attempts) for j in plan
+                           if not store.done(j.kind, j.id)]
                 seqs = [j for j in pending if j.kind == "sequence"]
                 if max_sequences is not None and len(seqs) > max_sequences:
                     keep = {j.id for j in seqs[:max_sequences]}
@@ -296,6 +297,15 @@ def generate_dataset(spec, out: str | None = None, *, ray: str | None = None, ma
         if executor is not None:
             executor.close()
     return reports
+
+
+def _resumed(job: Job, failed: dict, max_attempts: int) -> Job:
+    """A pending job at the attempt after the one the manifest records as failed (an earlier run
+    stopped before its retry ended; a job that failed its last attempt runs that attempt again)."""
+    entry = failed.get(job.key)
+    if entry is None:
+        return job
+    return replace(job, attempt=min(int(entry.get("attempts", 0)) + 1, max_attempts))
 
 
 def _make_executor(ray: str | None, spec: DatasetSpec):
