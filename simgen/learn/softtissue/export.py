@@ -2,8 +2,8 @@
 3.1, 3.6 and 3.8 colour the displacement's magnitude the same way).
 
 ``simgen export softtissue --data STORE --sequence ID --out DIR [--model DIR]``: the ground truth
-and, with a trained SoftSMPL, its prediction beside it (+X), each vertex coloured from blue (0) to
-red (``scale``, 2 cm by default).
+and, with a trained SoftSMPL, its prediction beside it (+X), each vertex coloured from grey (0)
+through orange to red (``scale``, 2 cm by default).
 """
 
 from __future__ import annotations
@@ -93,8 +93,8 @@ def export_softtissue(data, sequence: str, out_dir, *, body, model=None, usd: bo
         from simgen.io.render import render_sequence, scene_legend
 
         legend = {"sequence": sequence, **scene_legend(betas=seq.betas, motion=seq.motion),
-                  "colour": f"|Delta| 0 (blue) to {100 * scale:g} cm (red)",
-                  "shown": " | ".join(meta["shown"])}
+                  "colour": f"displacement, grey 0 to red {100 * scale:g} cm",
+                  "shown": " and ".join(meta["shown"])}
         paths["mp4"] = render_sequence(out / f"{sequence}.mp4", tracks, fps=seq.fps, size=size, legend=legend,
                                        progress=progress)
     return paths
