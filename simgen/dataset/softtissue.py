@@ -35,7 +35,7 @@ from simgen.errors import InputError
 
 __all__ = ["SoftTissueSpec", "load_softtissue_spec", "is_softtissue_spec", "is_softtissue_store",
            "generate_softtissue", "read_softtissue_store", "read_store_rows", "check_softtissue_store", "list_softtissue_presets",
-           "SoftTissueReport", "sequence_id"]
+           "SoftTissueReport", "sequence_id", "planned_frames"]
 
 PRESETS_DIR = Path(__file__).parent / "presets"
 KIND = "softtissue"
@@ -281,6 +281,12 @@ def _clip(spec: SoftTissueSpec, motion: str, mirrored: bool):
         raise InputError(f"motion {motion!r} is {clip.duration:.2f} s long; clip_start {spec.clip_start:g} s is past it")
     clip = trim(clip, spec.clip_start, end)
     return mirror(clip) if mirrored else clip
+
+
+def planned_frames(spec: SoftTissueSpec) -> int:
+    """Stored frames of a spec's whole plan: every shape of every (motion, mirror), at the flesh's fps."""
+    per_motion = [int(np.floor(_clip(spec, m, False).duration * spec.flesh.fps + 1e-9)) + 1 for m in spec.motions]
+    return sum(per_motion) * len(spec.shapes) * (2 if spec.mirror else 1)
 
 
 def _betas(spec: SoftTissueSpec, body, ids: list[str]) -> np.ndarray:
