@@ -825,12 +825,17 @@ def export_softtissue_cmd(
     no_video: bool = typer.Option(False, "--no-video", help="Only the USD (the MP4 needs pyvista and OpenGL)."),
 ) -> None:
     """The body with its soft tissue, coloured by the displacement's magnitude, as USD and MP4."""
+    from simgen.dataset.softtissue import is_softtissue_store, read_softtissue_store, store_body
     from simgen.learn.softtissue._cli import load_softtissue_source
     from simgen.learn.softtissue.export import export_softtissue
 
     if not scale > 0:
         raise InputError(f"--scale must be > 0 cm, got {scale}")
-    data_set, model_body = load_softtissue_source(data, body)
+    if is_softtissue_store(data):   # the one sequence, not the whole store
+        model_body = store_body(data, body)
+        data_set = read_softtissue_store(data, body=model_body, max_frames=frames, sequences=[sequence])
+    else:
+        data_set, model_body = load_softtissue_source(data, body, max_frames=frames)
     model = None
     if model_dir is not None:
         from simgen.learn.softtissue.train import load_softtissue_model

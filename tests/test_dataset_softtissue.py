@@ -20,7 +20,8 @@ from simgen.dataset.softtissue import (check_softtissue_store, generate_softtiss
 from simgen.dataset.storage import Location
 from simgen.errors import InputError
 
-SPEC = {"kind": "softtissue", "name": "st-test", "motions": ["jump", "run"], "clip_start": 1.0, "max_seconds": 0.05,
+SPEC = {"kind": "softtissue", "name": "st-test", "motions": ["jump", "run"], "test_motions": ["run"],
+        "clip_start": 1.0, "max_seconds": 0.05,
         "device": "cpu", "shapes": [{"id": "light", "betas": [0.0, -2.0]}, {"id": "heavy", "betas": [0.0, 2.0]}]}
 IDS = {f"{m}{r}__{s}" for m in ("jump", "run") for r in ("", "_mirror") for s in ("light", "heavy")}
 
@@ -106,7 +107,7 @@ def test_the_store_holds_what_the_simulation_returns(store):
     assert got.displacements.shape == ref.displacements.shape == (3, body.num_vertices, 3)   # 1.0-1.033 s of the 30 fps clip at 60 fps
     assert np.allclose(got.displacements, ref.displacements, atol=1e-7)
     assert np.allclose(got.poses, ref.poses.reshape(len(ref.poses), -1), atol=1e-6)
-    assert got.meta["mirrored"] is True and got.meta["split"] == "train"
+    assert got.meta["mirrored"] is True and got.meta["split"] == "test"
     # The flesh sags under gravity from the first frame; the heavy body more than the light one.
     peak = {s.name: np.abs(s.displacements).max() for s in data.sequences}
     assert 0 < peak["run__light"] < peak["run__heavy"] < 0.05
@@ -146,14 +147,23 @@ def test_the_cli_checks_and_describes_a_soft_tissue_store(store):
             assert doc["dataset"]["sequences"] == len(IDS) and {r["id"] for r in doc["sequences"]} == IDS
 
 
-def test_training_reads_a_store(store):
-    from simgen.learn.softtissue._cli import load_softtissue_source
+def test_training_reads_a_store_and_holds_out_its_test_motions(store, tmp_path):
+    from contextlib import nullcontext
+
+    from simgen.learn.softtissue._cli import load_softtissue_source, run_train_softtissue
 
     data, body = load_softtissue_source(str(store["out"]), None, max_frames=2)
     assert body.name == "open" and len(data.sequences) == len(IDS)
     assert all(len(s.poses) == 2 for s in data.sequences)
     train, tests = data.split(test_motions=["run"])
     assert {s.motion for s in train.sequences} == {"jump"}   # a held-out motion holds out its mirror too
+    run_train_softtissue(data=str(store["out"]), body=None, out=tmp_path / "m", device="cpu", time_budget=None,
+                         restart=False, max_frames=2, test_motions=None, test_subjects=None, pose_epochs=1,
+                         ae_epochs=1, reg_epochs=1, ae_latent=4, seed=None, echo=lambda msg: None,
+                         progress_factory=lambda label, total: (nullcontext(), lambda *a: None))
+    split = json.loads((tmp_path / "m" / "softtissue" / "split.json").read_text())
+    assert split["test_motions"] == ["run"]                  # the store's split, not "nothing held out"
+    assert set(split["test"]["held_out_motion"]) == {n for n in IDS if n.startswith("run")}
 
 
 def test_a_store_refuses_another_spec(store):
@@ -168,7 +178,39 @@ def test_the_preset_and_spec_errors():
     assert len(spec.shapes) == 5 and len(spec.motions) == 20 and spec.mirror and spec.flesh.fps == 60
     assert spec.split("walk_fast") == "test" and spec.split("run") == "train"
     for change, field in ((dict(colour="red"), "colour"), (dict(shapes=[{"id": "a__b", "betas": []}]), "shapes"),
+                          (dict(test_motions=["walk"]), "test_motions"),
                           (dict(mirror="yes"), "mirror"), (dict(max_seconds=0), "max_seconds"),
                           (dict(motions=[]), "motions"), (dict(flesh={"poisson": 0.6}), "poisson")):
         with pytest.raises(InputError, match=field):
             load_softtissue_spec({**SPEC, **change})
+
+
+def test_a_failed_simulation_is_not_written_and_bad_shapes_write_nothing(tmp_path, monkeypatch):
+    import simgen.softtissue.simulate as sim
+
+    real = sim.simulate_softtissue
+
+    def diverging(*args, **kw):
+        out = real(*args, **kw)
+        out[0].displacements[1, 5, 0] = np.nan
+        return out
+
+    monkeypatch.setattr(sim, "simulate_softtissue", diverging)
+    spec = {**SPEC, "motions": ["jump"], "test_motions": None, "mirror": False}
+    spec.pop("test_motions")
+    r = generate_softtissue(spec, str(tmp_path / "nan"))
+    assert list(r.failed) == ["jump__light"] and r.written == 1 and r.pending == 1
+    rep = check_softtissue_store(tmp_path / "nan")
+    assert not rep["passed"] and any("jump__light" in p and "failed" in p for p in rep["problems"])
+    monkeypatch.setattr(sim, "simulate_softtissue", real)
+    r = generate_softtissue(spec, str(tmp_path / "nan"))         # the rerun simulates it again
+    assert r.written == 1 and not r.failed and check_softtissue_store(tmp_path / "nan", require_complete=True)["passed"]
+    # A shape the body cannot take is refused before the store exists.
+    bad = {**spec, "shapes": [{"id": "ok", "betas": [0.0]}, {"id": "long", "betas": [0.0] * 500}]}
+    with pytest.raises(InputError, match="shape 'long'"):
+        generate_softtissue(bad, str(tmp_path / "bad"))
+    assert not (tmp_path / "bad").exists()
+    # A partial store fails --require-complete, naming what is missing.
+    generate_softtissue({**spec, "shapes": SPEC["shapes"]}, str(tmp_path / "part"), max_sequences=1)
+    rep = check_softtissue_store(tmp_path / "part", require_complete=True)
+    assert not rep["passed"] and any("1 planned sequences missing" in p for p in rep["problems"])

@@ -50,6 +50,8 @@ PARSE_ONLY: list[tuple[tuple[str, ...] | str, str]] = [
                  "and tests/test_snug.py"),
     (("eval", "garment"), "needs a model trained by `simgen train fit|wrinkle` (tests/test_examples.py)"),
     (("eval", "compare"), "needs trained models (`simgen train ...`)"),
+    (("eval", "softtissue"), "needs models trained by `simgen train softtissue` (tests/test_softtissue_models.py)"),
+    (("export", "softtissue"), "needs a soft-tissue store (run in tests/test_softtissue_models.py on its data)"),
     (("view",), "starts a web server that runs until stopped"),
     ("thesis-tshirt", "the thesis dataset: 340 sequences, 22 min on an H100"),
     ("cuda", "needs a CUDA GPU"),

@@ -119,8 +119,8 @@ def _generate_softtissue(spec_arg, *, out, ray, max_sequences, time_budget, repo
     given = {k: v for k, v in (overrides or {}).items() if v is not None}
     extra = (["--ray"] if ray is not None else []) + ["--" + k.replace("_", "-") for k in sorted(set(given) - {"device"})]
     if extra:
-        raise InputError(f"a soft-tissue spec takes only --out, --device, --max-sequences and --time-budget "
-                         f"(got {', '.join(extra)})")
+        raise InputError(f"a soft-tissue spec takes only --out, --device, --max-sequences, --time-budget, --report "
+                         f"and --dry-run (got {', '.join(extra)})")
     if "device" in given:
         from dataclasses import replace
 
@@ -136,12 +136,14 @@ def _generate_softtissue(spec_arg, *, out, ray, max_sequences, time_budget, repo
     state = "complete" if r.pending == 0 else f"{r.pending} sequences pending (rerun to continue)"
     print(f"{r.path}: {r.written} soft-tissue sequences written now, {r.planned - r.pending} of {r.planned} done, "
           f"{state}; {r.frames} frames in {r.wall:.1f} s" + (f"; stopped: {r.stopped}" if r.stopped else ""))
+    for node, msg in r.failed.items():
+        print(f"failed: {node}: {msg}", file=sys.stderr)
     if report is not None:
         from simgen._fileio import atomic_write_bytes
 
         Path(report).parent.mkdir(parents=True, exist_ok=True)
         atomic_write_bytes(report, json.dumps([r.to_dict()], indent=2).encode())
-    return 0
+    return 1 if r.failed else 0
 
 
 def run_check(path, *, stride=1, max_depth=1e-3, max_strain=1.0, require_complete=False, as_json=False,
@@ -151,6 +153,8 @@ def run_check(path, *, stride=1, max_depth=1e-3, max_strain=1.0, require_complet
 
     make = progress_factory or _plain_progress
     if is_softtissue_store(path):
+        if (stride, max_depth, max_strain) != (1, 1e-3, 1.0):
+            raise InputError(f"{path} is a soft-tissue store: --stride, --max-depth and --max-strain check cloth")
         bar, update = make("checking", 1)
         with bar:
             rep = check_softtissue_store(path, require_complete=require_complete, progress=update)

@@ -73,7 +73,8 @@ class StoreReport:
     reconcile: dict = field(default_factory=dict)
     # One entry per pool task, by round: {round, worker (Ray: node and GPU ids),
     # start, ready, end [s] from the run's start (task began, pool built, last write ended),
-    # cloth_frames, slots, gpu_memory_high_bytes}.
+    # cloth_frames, slots, gpu_memory_high_bytes (Warp's pool at its fullest in the task's process
+    # so far: a later task of the same process reports at least an earlier one's)}.
     tasks: list = field(default_factory=list)
 
     @property

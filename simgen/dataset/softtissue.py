@@ -192,12 +192,16 @@ def _parse(doc: dict, source: str) -> SoftTissueSpec:
     bad = [m for m in motions if "__" in m or m.endswith("_mirror")]
     if bad:
         raise InputError(f"{where}: motion name {bad[0]!r} may not contain '__' or end in '_mirror'")
+    test_motions = names("test_motions", False)
+    if test_motions is not None and not set(test_motions) <= set(motions):
+        raise InputError(f"{where}: test_motions names {sorted(set(test_motions) - set(motions))[0]!r}, which is not "
+                         f"in motions")
     flesh = doc.get("flesh") or {}
     if not isinstance(flesh, dict):
         raise InputError(f"{where}: [flesh] must be a table of FleshParams fields")
     try:
         params = FleshParams(**flesh)
-    except TypeError as exc:
+    except (TypeError, InputError) as exc:
         raise InputError(f"{where}: [flesh]: {exc}") from None
     num = {"clip_start": (0.0, float), "max_seconds": (0.0, float), "batch_size": (0, int)}
     values = {}
@@ -210,31 +214,46 @@ def _parse(doc: dict, source: str) -> SoftTissueSpec:
             raise InputError(f"{where}: {key} must be a number >= {low}{' (> 0)' if key == 'max_seconds' else ''}, "
                              f"got {v!r}")
         values[key] = kind(v)
-    for key in ("body", "mesh", "device", "output", "name", "description"):
+    for key in ("body", "mesh", "device", "output", "name"):
         if key in doc and not (isinstance(doc[key], str) and doc[key]):
             raise InputError(f"{where}: {key} must be a non-empty string, got {doc[key]!r}")
+    if not isinstance(doc.get("description", ""), str):
+        raise InputError(f"{where}: description must be a string, got {doc['description']!r}")
     if "mirror" in doc and not isinstance(doc["mirror"], bool):
         raise InputError(f"{where}: mirror must be true or false, got {doc['mirror']!r}")
     name = doc.get("name") or (Path(source).stem if source != "<dict>" else None)
     if not name:
         raise InputError(f"{where}: name is missing")
-    return SoftTissueSpec(name=name, shapes=tuple(shapes), motions=motions, body=doc.get("body", "open"),
-                          mesh=doc.get("mesh"), test_motions=names("test_motions", False),
+    base = Path(source).resolve().parent if source != "<dict>" else None
+    return SoftTissueSpec(name=name, shapes=tuple(shapes), motions=motions,
+                          body=_beside(doc.get("body", "open"), base), mesh=_beside(doc.get("mesh"), base),
+                          test_motions=test_motions,
                           mirror=doc.get("mirror", True), device=doc.get("device", "auto"), flesh=params,
                           output=doc.get("output"), description=doc.get("description", ""), source=source,
                           **values)
+
+
+def _beside(value: str | None, base: Path | None) -> str | None:
+    """A file named in a spec, relative to the spec's folder (a body name such as "open" as it is)."""
+    if value is None or base is None or Path(value).is_absolute():
+        return value
+    if "/" in value or Path(value).suffix.lower() in (".pkl", ".npz"):
+        return str(base / value)
+    return value
 
 
 # ------------------------------------------------------------------------------------------ writing
 @dataclass
 class SoftTissueReport:
     """What one run did: path, planned/written/pending sequences, frames simulated, wall [s],
-    the simulation's share of it [s], and why it stopped early (None: it did not)."""
+    the simulation's share of it [s], why it stopped early (None: it did not), and the sequences
+    that failed ({id: message}: not written; a rerun simulates them again)."""
 
     path: str
     planned: int
     done_before: int
     written: int = 0
+    failed: dict = field(default_factory=dict)
     pending: int = 0
     frames: int = 0
     wall: float = 0.0
@@ -266,7 +285,8 @@ def _root_attrs(spec: SoftTissueSpec, body, mesh) -> dict:
     key["mesh_hash"] = _mesh_hash(mesh)
     return {"format_version": FORMAT_VERSION, "simgen_version": __version__, "kind": KIND, "spec": spec.to_dict(),
             "content_key": key, "content_hash": hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest(),
-            "body": {"id": body.model_id, "hash": body.hash, "source": spec.body, "num_betas": body.num_betas},
+            "body": {"id": body.model_id, "hash": body.hash, "source": spec.body, "num_betas": body.num_betas,
+                     "vertices": body.num_vertices},
             "mesh": {"nodes": int(mesh.num_nodes), "tets": int(mesh.num_tets), "hash": key["mesh_hash"]},
             "flesh": asdict(spec.flesh)}
 
@@ -277,8 +297,9 @@ def _clip(spec: SoftTissueSpec, motion: str, mirrored: bool):
 
     clip = load_motion(motion)
     end = clip.duration if spec.max_seconds is None else min(clip.duration, spec.clip_start + spec.max_seconds)
-    if not end > spec.clip_start:
-        raise InputError(f"motion {motion!r} is {clip.duration:.2f} s long; clip_start {spec.clip_start:g} s is past it")
+    if not (end - spec.clip_start) * spec.flesh.rate >= 2.0:
+        raise InputError(f"soft-tissue spec {spec.source or spec.name}: motion {motion!r} ({clip.duration:.2f} s) leaves "
+                         f"no window of at least 3 steps from clip_start {spec.clip_start:g} s")
     clip = trim(clip, spec.clip_start, end)
     return mirror(clip) if mirrored else clip
 
@@ -290,24 +311,26 @@ def planned_frames(spec: SoftTissueSpec) -> int:
 
 
 def _betas(spec: SoftTissueSpec, body, ids: list[str]) -> np.ndarray:
+    """(N, B) betas of the shapes ``ids``, zero-padded to the body's (InputError names the shape)."""
     table = dict(spec.shapes)
-    out = np.zeros((len(ids), body.num_betas))
-    for k, sid in enumerate(ids):
-        b = np.asarray(table[sid], dtype=np.float64)
-        if len(b) > body.num_betas:
-            raise InputError(f"shape {sid!r} has {len(b)} betas; body {spec.body!r} has {body.num_betas}")
-        out[k, :len(b)] = b
-    return out
+    out = []
+    for sid in ids:
+        try:
+            out.append(body.check_betas(table[sid])[0])
+        except InputError as exc:
+            raise InputError(f"soft-tissue spec {spec.source or spec.name}: shape {sid!r}: {exc}") from None
+    return np.stack(out) if out else np.zeros((0, body.num_betas))
 
 
 def _node(spec: SoftTissueSpec, res, motion: str, mirrored: bool, shape_id: str) -> tuple[dict, dict]:
+    from simgen.softtissue.simulate import mean_speed
+
     d = np.asarray(res.displacements, dtype=np.float32)
     mag = np.linalg.norm(d, axis=-1)                                      # (T, V) [m]
-    speed = np.linalg.norm(np.diff(d, axis=0), axis=-1) * res.fps if len(d) > 1 else np.zeros((0, d.shape[1]))
     arrays = {"displacements": d, "poses": np.asarray(res.poses, dtype=np.float32),
               "trans": np.asarray(res.trans, dtype=np.float32), "betas": np.asarray(res.betas, dtype=np.float32)}
     stats = {"peak_m": float(mag.max(initial=0.0)), "mean_m": float(mag.mean()) if mag.size else 0.0,
-             "mean_speed_mps": float(speed.mean()) if speed.size else 0.0, "min_det": float(res.meta["min_det"]),
+             "mean_speed_mps": mean_speed(d, res.fps), "min_det": float(res.meta["min_det"]),
              "cg_iterations_max": int(res.meta["cg_iterations_max"]), "cg_capped": int(res.meta["cg_capped"])}
     attrs = {"motion": motion, "mirrored": bool(mirrored), "shape_id": shape_id, "split": spec.split(motion),
              "fps": float(res.fps), "frames": int(len(d)), "stats": stats,
@@ -336,6 +359,7 @@ def generate_softtissue(spec, out: str | None = None, *, max_sequences: int | No
     mesh = flesh_mesh(body, spec.mesh)
     for motion in spec.motions:
         _clip(spec, motion, False)   # every clip loads and is long enough, before anything is written
+    _betas(spec, body, [sid for sid, _ in spec.shapes])
     t0 = time.perf_counter()
     loc = Location(spec.output_path(out))
     store = DatasetStore.open_for_writing(loc, _root_attrs(spec, body, mesh))
@@ -384,6 +408,11 @@ def _run(spec, store, body, mesh, report, max_sequences, time_budget, t0, progre
         report.simulate_wall += time.perf_counter() - t
         for sid, res in zip(ids, results):
             node = sequence_id(motion, mirrored, sid)
+            if not (np.all(np.isfinite(res.displacements)) and np.isfinite(res.meta["min_det"])):
+                msg = "the simulation produced non-finite displacements (not written; a rerun simulates it again)"
+                store.record({"ok": False, "kind": "sequence", "id": node, "attempt": 1, "message": msg})
+                report.failed[node] = msg
+                continue
             arrays, attrs = _node(spec, res, motion, mirrored, sid)
             commit = store.loc.write_node(f"sequences/{node}", arrays, attrs)
             store.record({"ok": True, "kind": "sequence", "id": node, "checksum": commit["checksum"],
@@ -423,23 +452,39 @@ def _open(path):
     return loc, attrs, manifest
 
 
-def read_softtissue_store(path, *, body=None, max_frames: int | None = None):
-    """The committed sequences of a store as :class:`simgen.learn.softtissue.SoftTissueData` (the
-    shapes are its subjects; a mirrored clip keeps its motion's name, so a held-out motion holds
-    out its mirror too). body: the body model (default: the store's, checked by hash);
-    max_frames: at most this many frames per sequence."""
-    import zarr
-
+def store_body(path, body=None):
+    """The body model of a store: ``body`` (a BodyModel or source) checked against the store's hash,
+    or the one the store was made with."""
     from simgen import body as body_pkg
-    from simgen.learn.softtissue.data import SoftTissueData, SoftTissueSequence
 
-    loc, attrs, manifest = _open(path)
-    body = body_pkg.load(attrs["body"]["source"]) if body is None else body
+    _, attrs, _ = _open(path)
+    if body is None:
+        body = attrs["body"]["source"]
+    body = body if not isinstance(body, (str, Path)) else body_pkg.load(str(body))
     if body.hash != attrs["body"]["hash"]:
         raise InputError(f"{path} was made with body {attrs['body']['id']!r} (hash {attrs['body']['hash'][:12]}); "
                          f"the body given has hash {body.hash[:12]}")
+    return body
+
+
+def read_softtissue_store(path, *, body=None, max_frames: int | None = None, sequences=None):
+    """The committed sequences of a store as :class:`simgen.learn.softtissue.SoftTissueData` (the
+    shapes are its subjects; a mirrored clip keeps its motion's name, so a held-out motion holds
+    out its mirror too; each sequence's ``meta['split']`` is the store's). body: the body model
+    (default: the store's, checked by hash, :func:`store_body`); max_frames: at most this many
+    frames per sequence; sequences: only these ids (InputError for one the store lacks)."""
+    import zarr
+
+    from simgen.learn.softtissue.data import SoftTissueData, SoftTissueSequence
+
+    loc, attrs, manifest = _open(path)
+    body = store_body(path, body)
+    chosen = sorted(manifest["sequences"]) if sequences is None else list(sequences)
+    missing = [n for n in chosen if n not in manifest["sequences"]]
+    if missing:
+        raise InputError(f"{path} has no sequence {missing[0]!r} (`simgen dataset info {path}` lists them)")
     seqs = []
-    for node in sorted(manifest["sequences"]):
+    for node in chosen:
         g = zarr.open_group(loc.url(f"sequences/{node}"), mode="r")
         a = dict(g.attrs)
         n = a["frames"] if max_frames is None else min(a["frames"], max_frames)
@@ -473,33 +518,34 @@ def read_store_rows(path) -> tuple[dict, list[dict]]:
 def check_softtissue_store(path, *, max_peak: float = MAX_PEAK, require_complete: bool = False,
                            progress=None) -> dict:
     """Check a store: manifest and nodes agree (committed, checksums recomputed), arrays finite and of
-    one body's size, frame counts, no inverted tetrahedron (min det(I + grad u) > 0), peaks at most
-    ``max_peak`` [m]; with ``require_complete`` every planned sequence present. Returns a report
-    {passed, problems [str], sequences, frames, max_peak_m, min_det, mean_speed_mps}."""
+    the body's size, frame counts, peaks at most ``max_peak`` [m], no inverted tetrahedron (the
+    smallest det(I + grad u) the writer measured, > 0), no failed sequence; with
+    ``require_complete`` every planned sequence present. Returns a report {passed, problems [str],
+    sequences, frames, max_peak_m, min_det, mean_speed_mps, failed}."""
     import zarr
 
     from simgen.dataset.storage import arrays_checksum
     from simgen.dataset.store import node_arrays
 
     loc, attrs, manifest = _open(path)
-    problems = []
+    problems = [f"{key}: failed ({entry.get('message')})" for key, entry in sorted(manifest["failed"].items())]
     listed = manifest["sequences"]
     on_disk = {n for n in loc.listdir("sequences") if n != "zarr.json"}
     for node in sorted(on_disk - set(listed)):
         problems.append(f"sequences/{node}: in the store but not in the manifest")
     if require_complete:
-        spec = attrs["spec"]
-        plan = [sequence_id(m, r, s["id"]) for m in spec["motions"] for r in ((False, True) if spec["mirror"]
-                                                                                else (False,)) for s in spec["shapes"]]
-        missing = [n for n in plan if n not in listed]
+        spec = _parse({k: v for k, v in attrs["spec"].items() if k != "source" and v is not None}, str(path))
+        missing = [n for m, r in spec.plan() for sid, _ in spec.shapes
+                   if (n := sequence_id(m, r, sid)) not in listed]
         if missing:
             problems.append(f"{len(missing)} planned sequences missing (first: {missing[0]})")
-    V = None
+    V = attrs["body"]["vertices"]
     frames, peak, min_det, speeds = 0, 0.0, np.inf, []
     for k, (node, entry) in enumerate(sorted(listed.items())):
+        if progress is not None:
+            progress(k + 1, len(listed))
         rel = f"sequences/{node}"
-        commit = loc.committed(rel)
-        if commit is None:
+        if loc.committed(rel) is None:
             problems.append(f"{rel}: listed in the manifest but not committed")
             continue
         arrays = node_arrays(loc, rel)
@@ -507,10 +553,10 @@ def check_softtissue_store(path, *, max_peak: float = MAX_PEAK, require_complete
             problems.append(f"{rel}: checksum differs from the manifest's (corrupt)")
             continue
         d, a = arrays["displacements"], dict(zarr.open_group(loc.url(rel), mode="r").attrs)
-        V = d.shape[1] if V is None else V
-        if d.ndim != 3 or d.shape[1:] != (V, 3) or len(d) != a["frames"] or len(arrays["poses"]) != len(d):
+        if d.shape[1:] != (V, 3) or len(d) != a["frames"] or len(arrays["poses"]) != len(d):
             problems.append(f"{rel}: displacements {d.shape} and poses {arrays['poses'].shape} disagree with "
-                            f"{a['frames']} frames of {V} vertices")
+                            f"{a['frames']} frames of the body's {V} vertices")
+            continue
         if not all(np.all(np.isfinite(x)) for x in arrays.values()):
             problems.append(f"{rel}: non-finite values")
             continue
@@ -523,8 +569,6 @@ def check_softtissue_store(path, *, max_peak: float = MAX_PEAK, require_complete
         peak = max(peak, p)
         min_det = min(min_det, a["stats"]["min_det"])
         speeds.append(a["stats"]["mean_speed_mps"])
-        if progress is not None:
-            progress(k + 1, len(listed))
     return {"path": str(path), "passed": not problems, "problems": problems, "sequences": len(listed),
             "frames": frames, "max_peak_m": peak, "min_det": None if not np.isfinite(min_det) else float(min_det),
-            "mean_speed_mps": float(np.mean(speeds)) if speeds else None, "failed": sorted(manifest.get("failed", {}))}
+            "mean_speed_mps": float(np.mean(speeds)) if speeds else None, "failed": sorted(manifest["failed"])}

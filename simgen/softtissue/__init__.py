@@ -17,7 +17,7 @@ _EXPORTS = {
     "simgen.softtissue.mesh": ("FleshMesh", "build_flesh_mesh", "flesh_mesh"),
     "simgen.softtissue.model": ("FleshModel",),
     "simgen.softtissue.solver": ("FleshSolver",),
-    "simgen.softtissue.simulate": ("simulate_softtissue", "skeleton_tracks", "SoftTissueResult"),
+    "simgen.softtissue.simulate": ("simulate_softtissue", "skeleton_tracks", "SoftTissueResult", "mean_speed"),
 }
 _LAZY = {name: module for module, names in _EXPORTS.items() for name in names}
 

@@ -35,7 +35,7 @@ from simgen.softtissue.model import FleshModel
 from simgen.softtissue.params import FleshParams
 from simgen.softtissue.solver import FleshSolver
 
-__all__ = ["simulate_softtissue", "skeleton_tracks", "rig_forces", "SoftTissueResult"]
+__all__ = ["simulate_softtissue", "skeleton_tracks", "rig_forces", "SoftTissueResult", "mean_speed"]
 
 
 @dataclass
@@ -61,6 +61,13 @@ class SoftTissueResult:
     @property
     def num_frames(self) -> int:
         return len(self.poses)
+
+
+def mean_speed(displacements, fps: float) -> float:
+    """[m/s] Mean vertex speed of displacements (T, V, 3) [m] at ``fps`` [1/s]: |Delta_t - Delta_{t-1}|
+    x fps over frames and vertices (the thesis's Fig. 3.7 measure; 0 for one frame)."""
+    d = np.asarray(displacements, dtype=np.float64)
+    return float(np.linalg.norm(np.diff(d, axis=0), axis=-1).mean() * fps) if len(d) > 1 else 0.0
 
 
 @wp.kernel(enable_backward=False)

@@ -19,7 +19,7 @@ def load_softtissue_source(data: str, body_file: str | None, *, max_frames: int 
     soft-tissue store (``simgen dataset generate softtissue``, :func:`~simgen.dataset.softtissue.read_softtissue_store`)
     or a Dyna .h5 file, read with the SMPL body file ``body_file`` (:func:`~simgen.learn.softtissue.dyna.read_dyna`)."""
     from simgen.body import load
-    from simgen.dataset.softtissue import is_softtissue_store, read_softtissue_store
+    from simgen.dataset.softtissue import is_softtissue_store, read_softtissue_store, store_body
 
     if data == "synthetic":
         from simgen.learn.softtissue.data import synthetic_softtissue_data
@@ -27,8 +27,8 @@ def load_softtissue_source(data: str, body_file: str | None, *, max_frames: int 
         body = load(body_file) if body_file else load("open")
         return synthetic_softtissue_data(body, frames=max_frames or 60), body
     if is_softtissue_store(data):
-        data_set = read_softtissue_store(data, body=load(body_file) if body_file else None, max_frames=max_frames)
-        return data_set, load(body_file) if body_file else _store_body(data)
+        body = store_body(data, body_file)
+        return read_softtissue_store(data, body=body, max_frames=max_frames), body
     path = Path(data)
     if path.suffix.lower() not in (".h5", ".hdf5"):
         raise InputError(f"--data must be 'synthetic', a soft-tissue store or a Dyna .h5 file, got {data!r}")
@@ -43,13 +43,6 @@ def load_softtissue_source(data: str, body_file: str | None, *, max_frames: int 
     return read_dyna(path, body, max_frames=max_frames, device=device, progress=progress), body
 
 
-def _store_body(path: str):
-    from simgen.body import load
-    from simgen.dataset.storage import Location
-
-    return load(Location(path).node_attrs("")["body"]["source"])
-
-
 def run_train_softtissue(*, data: str, body: str | None, out: Path, device: str, time_budget: float | None,
                          restart: bool, max_frames: int | None, test_motions: str | None, test_subjects: str | None,
                          pose_epochs: int | None, ae_epochs: int | None, reg_epochs: int | None,
@@ -60,14 +53,17 @@ def run_train_softtissue(*, data: str, body: str | None, out: Path, device: str,
         raise InputError(f"--time-budget must be positive seconds, got {time_budget}")
     if max_frames is not None and max_frames < 1:
         raise InputError(f"--max-frames must be at least 1, got {max_frames}")
-    given = {"pose_epochs": pose_epochs, "ae_epochs": ae_epochs, "reg_epochs": reg_epochs, "ae_latent": ae_latent,
-             "test_motions": test_motions, "test_subjects": test_subjects, "seed": seed}
-    config = replace(SoftTissueConfig(), **{k: v for k, v in given.items() if v is not None})
-    config.check()
     progress, update = progress_factory(f"reading {data}", 1)
     with progress:
         dataset, model_body = load_softtissue_source(data, body, max_frames=max_frames, device=device,
                                                      progress=lambda done, total: update(done, total))
+    if test_motions is None:
+        # A store's own split (its spec's test_motions, else the library's test clips) by default.
+        test_motions = ",".join(sorted({s.motion for s in dataset.sequences if s.meta.get("split") == "test"})) or None
+    given = {"pose_epochs": pose_epochs, "ae_epochs": ae_epochs, "reg_epochs": reg_epochs, "ae_latent": ae_latent,
+             "test_motions": test_motions, "test_subjects": test_subjects, "seed": seed}
+    config = replace(SoftTissueConfig(), **{k: v for k, v in given.items() if v is not None})
+    config.check()
     total = config.pose_epochs + config.ae_epochs + config.reg_epochs
     progress, update = progress_factory("training SoftSMPL", max(total, 1))
     with progress:

@@ -38,29 +38,27 @@ def _error_mm(a: np.ndarray, b: np.ndarray) -> float:
     return float(1e3 * np.linalg.norm(np.asarray(a, np.float64) - np.asarray(b, np.float64), axis=-1).mean())
 
 
-def _speed(d: np.ndarray, fps: float) -> float:
-    return float(np.linalg.norm(np.diff(d, axis=0), axis=-1).mean() * fps) if len(d) > 1 else 0.0
-
-
-def _frames(data) -> np.ndarray:
-    return np.concatenate([s.displacements for s in data.sequences]).astype(np.float64)
-
-
 def _pca_table(train, groups: dict, sizes: list[int]) -> dict:
     """{size: {group: mm}} of PCA reconstructions (projection on the training basis)."""
     from simgen.learn.softtissue.models import pca_basis, pca_frames
 
     X = pca_frames([s.displacements for s in train.sequences])
     V = X.shape[1]
-    out = {}
+    bases = {}
     for k in sizes:
         mean, comps, scales = pca_basis(X, k)
-        comps = comps[scales > 1e-8]        # the data's own directions (fewer when it has fewer frames)
-        row = {}
-        for name, g in groups.items():
-            Y = _frames(g).reshape(-1, 3 * V) - mean
-            row[name] = _error_mm(((Y @ comps.T) @ comps).reshape(-1, V, 3), Y.reshape(-1, V, 3))
-        out[k] = row
+        bases[k] = (mean, comps[scales > 1e-8])   # the data's own directions (fewer with fewer frames)
+    out = {k: {} for k in sizes}
+    for name, g in groups.items():
+        sums, n = dict.fromkeys(sizes, 0.0), 0
+        for s in g.sequences:   # one sequence at a time: a held-out group may not fit in memory at once
+            Y = s.displacements.reshape(len(s.displacements), 3 * V).astype(np.float64)
+            for k, (mean, comps) in bases.items():
+                R = Y - mean
+                sums[k] += _error_mm(((R @ comps.T) @ comps).reshape(-1, V, 3), R.reshape(-1, V, 3)) * len(Y)
+            n += len(Y)
+        for k in sizes:
+            out[k][name] = sums[k] / max(n, 1)
     return out
 
 
@@ -82,18 +80,19 @@ def _ae_row(model, groups: dict, batch: int = 256) -> dict:
 
 def _regressor_rows(model, groups: dict, body, density: float) -> list[dict]:
     from simgen.softtissue.model import body_mass_proxy
+    from simgen.softtissue.simulate import mean_speed
 
     rows = []
     for name, g in groups.items():
         for s in g.sequences:
             pred = model.predict(s.betas, s.poses, s.trans, s.fps).cpu().numpy()
-            betas = np.zeros(body.num_betas)
-            betas[:min(len(s.betas), body.num_betas)] = s.betas[:body.num_betas]
+            betas = body.check_betas(s.betas[:body.num_betas])[0]
             rows.append({"group": name, "sequence": s.name, "motion": s.motion, "subject": s.subject,
                          "body_mass_proxy": float(body_mass_proxy(body, betas, density)),
                          "error_mm": _error_mm(pred, s.displacements),
                          "no_soft_tissue_mm": _error_mm(np.zeros_like(s.displacements), s.displacements),
-                         "speed_true_mps": _speed(s.displacements, s.fps), "speed_pred_mps": _speed(pred, s.fps)})
+                         "speed_true_mps": mean_speed(s.displacements, s.fps),
+                         "speed_pred_mps": mean_speed(pred, s.fps)})
     return rows
 
 

@@ -26,9 +26,7 @@ def _posed(body, seq, delta) -> np.ndarray:
     from simgen.learn.softtissue.dyna import posed_vertices
 
     tb = TorchBody(body, dtype=torch.float64)
-    b = torch.zeros(body.num_betas, dtype=torch.float64)
-    given = torch.as_tensor(np.asarray(seq.betas, dtype=np.float64).reshape(-1))[:body.num_betas]
-    b[:len(given)] = given
+    b = torch.as_tensor(body.check_betas(np.asarray(seq.betas).reshape(-1)[:body.num_betas])[0])
     with torch.no_grad():
         x = posed_vertices(tb, torch.as_tensor(np.asarray(delta, dtype=np.float64)), b,
                            torch.as_tensor(seq.poses, dtype=torch.float64).reshape(-1, 72),
