@@ -640,3 +640,27 @@ def test_a_rerun_resumes_a_retry_at_its_attempt(tmp_path, monkeypatch):
     assert rep.pending == 0 and not rep.failed and rep.written == 1
     assert _runs(calls) == [(["walk_fast__b1p2"], 2 * spec.substeps)]
     assert open_dataset(tmp_path / "s").sequence("walk_fast__b1p2")["attrs"]["stats"]["attempts"] == 2
+
+
+def test_a_resumed_template_retry_runs_before_the_fits_that_need_it(tmp_path, monkeypatch):
+    from simgen.sim.pool import SimulationPool
+
+    _patch_pools(monkeypatch, lambda j, r: _injected(j) if j.kind == "template" and j.attempt == 1 else r)
+    submit = SimulationPool.submit
+
+    def crash_on_retry(self, job, tag=None):
+        if tag.attempt > 1:
+            raise RuntimeError("the machine went away")
+        return submit(self, job, tag)
+
+    monkeypatch.setattr(SimulationPool, "submit", crash_on_retry)
+    spec = micro().with_overrides(shapes=["zero"])
+    with pytest.raises(RuntimeError, match="went away"):
+        generate_dataset(spec, out=str(tmp_path / "s"))
+    monkeypatch.setattr(SimulationPool, "submit", submit)
+    calls = _patch_pools(monkeypatch, lambda j, r: r)
+    (rep,) = generate_dataset(spec, out=str(tmp_path / "s"))
+    assert rep.pending == 0 and not rep.failed
+    # The template at its next attempt alone, then the fit that needs it (not first, to wait and run again).
+    assert [ids for ids, _ in _runs(calls)][:2] == [["template"], ["zero"]]
+    assert _runs(calls)[0][1] == 2 * spec.substeps

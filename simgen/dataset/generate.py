@@ -197,13 +197,15 @@ def _plan_order(jobs: list[Job]) -> list[Job]:
 
 
 def _next_round(queue: list[Job], first: bool) -> list[Job]:
-    """The jobs of the next pool, taken out of ``queue``: at first every job; later a template retry
-    alone (the fits waiting for it need it written), else every job of the lowest attempt (a pool
+    """The jobs of the next pool, taken out of ``queue``: at first every job of the lowest attempt;
+    a template retry alone (later, or first when a rerun resumes it at a later attempt than the
+    rest: the fits waiting for it need it written), else every job of the lowest attempt (a pool
     shares its substep)."""
-    if not first and any(j.kind == "template" for j in queue):
-        chosen = [j for j in queue if j.kind == "template"][:1]
+    low = min(j.attempt for j in queue)
+    template = next((j for j in queue if j.kind == "template"), None)
+    if template is not None and (not first or template.attempt > low):
+        chosen = [template]
     else:
-        low = min(j.attempt for j in queue)
         chosen = [j for j in queue if j.attempt == low]
     for j in chosen:
         queue.remove(j)
