@@ -164,11 +164,16 @@ def main(argv=None) -> int:
     finally:
         if tmp is not None:
             shutil.rmtree(tmp, ignore_errors=True)
+    _emit(result, a.json)
+    return 0
+
+
+def _emit(result: dict, path: str | None) -> None:
+    """Print the benchmark's JSON, and write it to ``path`` too when given."""
     text = json.dumps(result, indent=2)
     print(text)
-    if a.json:
-        Path(a.json).write_text(text + "\n")
-    return 0
+    if path:
+        Path(path).write_text(text + "\n")
 
 
 if __name__ == "__main__":

@@ -1,7 +1,7 @@
 """Time a soft-tissue store's generation (issue 25's target: the `softtissue` preset in at most 8
 minutes on one H100); prints (and saves) JSON with device, commit and sizes.
 
-    python scripts/softtissue_bench.py --spec softtissue --device cuda:0 --out /tmp/st --time-budget 500
+    python scripts/softtissue_bench.py --spec softtissue --device cuda:0 --out st-store --time-budget 500
     python scripts/softtissue_bench.py --spec my_small.toml --device cpu        # a temporary store
 
 A fresh store is generated (or an existing one resumed with --out): wall time, stored frames per
@@ -12,7 +12,6 @@ preset's whole plan from the frames done when a budget stopped the run.
 from __future__ import annotations
 
 import argparse
-import json
 import shutil
 import sys
 import tempfile
@@ -21,7 +20,7 @@ from dataclasses import replace
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from dataset_bench import _commit, _device  # noqa: E402  (one definition of what a benchmark records)
+from dataset_bench import _commit, _device, _emit  # noqa: E402  (one definition of what a benchmark records)
 
 
 def main(argv=None) -> int:
@@ -73,10 +72,7 @@ def main(argv=None) -> int:
     finally:
         if tmp is not None:
             shutil.rmtree(tmp, ignore_errors=True)
-    text = json.dumps(result, indent=2)
-    print(text)
-    if a.json:
-        Path(a.json).write_text(text + "\n")
+    _emit(result, a.json)
     return 0
 
 

@@ -614,13 +614,13 @@ def test_one_pool_keeps_its_slots_full(tmp_path, monkeypatch):
     assert check_dataset(tmp_path / "b").passed
 
 
-def test_a_rerun_resumes_a_retry_at_its_attempt(tmp_path, monkeypatch):
-    """A run that stops after a job failed (here it crashes as its retry pool starts) leaves the
-    failure in the manifest; the next run simulates the job at the next attempt, not from the first."""
+def _run_stopped_at_retry(monkeypatch, fails, spec, out):
+    """Run ``spec`` into ``out`` with the jobs ``fails(job)`` failing their first attempt and the run
+    crashing as their retry pool starts (the manifest keeps the failures); then clear the patches
+    and return a fresh pool log (:func:`_patch_pools`) for the rerun."""
     from simgen.sim.pool import SimulationPool
 
-    calls = _patch_pools(monkeypatch, lambda j, r: _injected(j) if j.id == "walk_fast__b1p2" and j.attempt == 1
-                         else r)
+    _patch_pools(monkeypatch, lambda j, r: _injected(j) if fails(j) and j.attempt == 1 else r)
     submit = SimulationPool.submit
 
     def crash_on_retry(self, job, tag=None):
@@ -629,13 +629,19 @@ def test_a_rerun_resumes_a_retry_at_its_attempt(tmp_path, monkeypatch):
         return submit(self, job, tag)
 
     monkeypatch.setattr(SimulationPool, "submit", crash_on_retry)
-    spec = micro()
     with pytest.raises(RuntimeError, match="went away"):
-        generate_dataset(spec, out=str(tmp_path / "s"))
+        generate_dataset(spec, out=str(out))
+    monkeypatch.undo()
+    return _patch_pools(monkeypatch, lambda j, r: r)
+
+
+def test_a_rerun_resumes_a_retry_at_its_attempt(tmp_path, monkeypatch):
+    """A run that stops after a job failed (here it crashes as its retry pool starts) leaves the
+    failure in the manifest; the next run simulates the job at the next attempt, not from the first."""
+    spec = micro()
+    calls = _run_stopped_at_retry(monkeypatch, lambda j: j.id == "walk_fast__b1p2", spec, tmp_path / "s")
     m = json.loads((tmp_path / "s" / "manifest.json").read_text())
     assert m["failed"]["sequence:walk_fast__b1p2"]["attempts"] == 1 and set(m["sequences"]) == {"walk_fast__zero"}
-    monkeypatch.setattr(SimulationPool, "submit", submit)
-    calls = _patch_pools(monkeypatch, lambda j, r: r)
     (rep,) = generate_dataset(spec, out=str(tmp_path / "s"))
     assert rep.pending == 0 and not rep.failed and rep.written == 1
     assert _runs(calls) == [(["walk_fast__b1p2"], 2 * spec.substeps)]
@@ -643,22 +649,8 @@ def test_a_rerun_resumes_a_retry_at_its_attempt(tmp_path, monkeypatch):
 
 
 def test_a_resumed_template_retry_runs_before_the_fits_that_need_it(tmp_path, monkeypatch):
-    from simgen.sim.pool import SimulationPool
-
-    _patch_pools(monkeypatch, lambda j, r: _injected(j) if j.kind == "template" and j.attempt == 1 else r)
-    submit = SimulationPool.submit
-
-    def crash_on_retry(self, job, tag=None):
-        if tag.attempt > 1:
-            raise RuntimeError("the machine went away")
-        return submit(self, job, tag)
-
-    monkeypatch.setattr(SimulationPool, "submit", crash_on_retry)
     spec = micro().with_overrides(shapes=["zero"])
-    with pytest.raises(RuntimeError, match="went away"):
-        generate_dataset(spec, out=str(tmp_path / "s"))
-    monkeypatch.setattr(SimulationPool, "submit", submit)
-    calls = _patch_pools(monkeypatch, lambda j, r: r)
+    calls = _run_stopped_at_retry(monkeypatch, lambda j: j.kind == "template", spec, tmp_path / "s")
     (rep,) = generate_dataset(spec, out=str(tmp_path / "s"))
     assert rep.pending == 0 and not rep.failed
     # The template at its next attempt alone, then the fit that needs it (not first, to wait and run again).

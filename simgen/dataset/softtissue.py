@@ -32,6 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from simgen.errors import InputError
+from simgen.softtissue.params import FleshParams
 
 __all__ = ["SoftTissueSpec", "load_softtissue_spec", "is_softtissue_spec", "is_softtissue_store",
            "generate_softtissue", "read_softtissue_store", "read_store_rows", "check_softtissue_store", "list_softtissue_presets",
@@ -66,7 +67,7 @@ class SoftTissueSpec:
     max_seconds: float | None = None
     batch_size: int = 0
     device: str = "auto"
-    flesh: object = None
+    flesh: FleshParams = field(default_factory=FleshParams)
     output: str | None = None
     description: str = ""
     source: str = field(default="", compare=False)
@@ -160,8 +161,6 @@ def load_softtissue_spec(spec) -> SoftTissueSpec:
 
 
 def _parse(doc: dict, source: str) -> SoftTissueSpec:
-    from simgen.softtissue.params import FleshParams
-
     where = f"soft-tissue spec {source}"
     unknown = sorted(set(doc) - _FIELDS)
     if unknown:
