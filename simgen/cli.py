@@ -1178,6 +1178,14 @@ def train_softtissue_cmd(
     ae_latent: Optional[int] = typer.Option(None, "--ae-latent", help="Soft-tissue code size (100).",
                                             rich_help_panel=EXPERT),
     seed: Optional[int] = typer.Option(None, "--seed", help="Random seed (0)."),
+    base: Optional[str] = typer.Option(None, "--base", help="A trained SoftSMPL folder: take its two autoencoders and "
+                                       "train only the regressor (ablations, leave-one-motion-out).",
+                                       rich_help_panel=EXPERT),
+    pose_input: Optional[str] = typer.Option(None, "--pose-input", help="The regressor's pose input: 'code' (the "
+                                             "pose AE's, default) or 'pose' (raw joint rotations; Fig. 3.7 ablation).",
+                                             rich_help_panel=EXPERT),
+    no_motion_transfer: bool = typer.Option(False, "--no-motion-transfer", help="Train the regressor on one shape "
+                                            "per clip (Fig. 3.7 ablation).", rich_help_panel=EXPERT),
 ) -> None:
     """Train SoftSMPL (thesis ch. 3): pose AE, soft-tissue AE, GRU regressor; resumes a run found in --out."""
     from simgen.learn.softtissue._cli import run_train_softtissue
@@ -1185,7 +1193,8 @@ def train_softtissue_cmd(
     run_train_softtissue(data=data, body=body, out=out, device=device, time_budget=time_budget, restart=restart,
                          max_frames=max_frames, test_motions=test_motions, test_subjects=test_subjects,
                          pose_epochs=pose_epochs, ae_epochs=ae_epochs, reg_epochs=reg_epochs, ae_latent=ae_latent,
-                         seed=seed, echo=typer.echo, progress_factory=_progress)
+                         seed=seed, pose_input=pose_input, motion_transfer=False if no_motion_transfer else None,
+                         base=base, echo=typer.echo, progress_factory=_progress)
 
 
 @eval_app.command("compare")

@@ -214,3 +214,23 @@ def test_a_failed_simulation_is_not_written_and_bad_shapes_write_nothing(tmp_pat
     generate_softtissue({**spec, "shapes": SPEC["shapes"]}, str(tmp_path / "part"), max_sequences=1)
     rep = check_softtissue_store(tmp_path / "part", require_complete=True)
     assert not rep["passed"] and any("1 planned sequences missing" in p for p in rep["problems"])
+
+
+def test_the_thesis_script_trains_ablations_and_folds_and_reports(store, tmp_path):
+    # scripts/softtissue_thesis.py at a tiny size: budgets of seconds stop every run, which is then
+    # closed at the epochs it reached; a second call finds everything finished and only reports.
+    root = Path(__file__).resolve().parents[1]
+    cmd = [sys.executable, str(root / "scripts" / "softtissue_thesis.py"), "--data", str(store["root"] / "clean"),
+           "--work", str(tmp_path / "work"), "--out", str(tmp_path / "out"), "--device", "cpu", "--ae-sizes", "8",
+           "--ae-budget", "2", "--reg-budget", "2", "--jobs", "2", "--timing-frames", "2"]
+    run = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stdout[-2000:] + run.stderr[-2000:]
+    s = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert set(s["regressors"]["runs"]) == {"full", "no_static", "no_dynamic", "neither", "lomo_run"}
+    assert all(r["epochs"].get("regressor", 0) >= 1 for r in s["regressors"]["runs"].values())
+    lomo = s["eval"]["leave_one_motion_out"]
+    assert [r["motion"] for r in lomo] == ["run"] and lomo[0]["sequences"] == 4 and np.isfinite(lomo[0]["error_mm"])
+    md = (tmp_path / "out" / "summary.md").read_text()
+    assert "| no_dynamic | code | no |" in md and "Leave one motion out" in md
+    again = subprocess.run(cmd[:-2] + ["--phases", "ae,reg"], capture_output=True, text=True, timeout=600)
+    assert again.returncode == 0 and "started" not in again.stdout

@@ -7,6 +7,7 @@ triangles of it, with the joint regressor renormalised), so the whole file takes
 from __future__ import annotations
 
 import csv
+from pathlib import Path
 import math
 
 import numpy as np
@@ -294,6 +295,60 @@ def test_eval_softtissue_tables(body, data, tmp_path):
     train_softtissue(data, tmp_path / "other", body=body, config=_tiny_config(test_motions="jump"))
     with pytest.raises(InputError, match="one split"):
         evaluate_softtissue([tmp_path / "m4", tmp_path / "other"], data, tmp_path / "eval2", body=body)
+
+
+def test_ablations_train_only_the_regressor_on_a_base(body, tmp_path):
+    # Fig. 3.7's ablations and leave-one-motion-out: the regressor on a base's autoencoders, with raw
+    # joint rotations for the pose code and with one shape per clip; a base that saw a held-out
+    # sequence is refused.
+    from simgen.learn.softtissue.data import one_shape_per_motion
+    from simgen.learn.softtissue.evaluate import evaluate_softtissue
+    from simgen.learn.softtissue.train import load_softtissue_model, train_softtissue
+
+    data = synthetic_softtissue_data(body, motions=("jump", "walk", "run"), subjects=3, frames=12)
+    one = one_shape_per_motion(data)
+    assert sorted(s.motion for s in one.sequences) == ["jump", "run", "walk"]
+    assert len({s.subject for s in one.sequences}) == 3          # each subject keeps one of the three clips
+
+    train_softtissue(data, tmp_path / "base", body=body, config=_tiny_config(reg_epochs=0, test_motions="walk,run"))
+    base = load_softtissue_model(tmp_path / "base")
+    for name, kw in {"full": {}, "raw": {"pose_input": "pose"}, "one": {"motion_transfer": False},
+                     "lomo": {"test_motions": "walk"}}.items():
+        kw = {"test_motions": "walk,run", **kw}
+        r = train_softtissue(data, tmp_path / name, body=body, config=_tiny_config(base=str(tmp_path / "base"), **kw))
+        assert r.stage == "done"
+        rows = list(csv.DictReader(open(tmp_path / name / "softtissue" / "log.csv")))
+        assert {row["stage"] for row in rows} == {"regressor"}
+        m = load_softtissue_model(tmp_path / name)
+        for net in ("pose_ae", "soft_ae"):
+            a, b = getattr(m, net).state_dict(), getattr(base, net).state_dict()
+            assert all(torch.equal(a[k], b[k]) for k in a)
+    raw = load_softtissue_model(tmp_path / "raw")
+    assert raw.regressor.pose_input == "pose" and raw.regressor.num_features == 3 * 69 + 6
+    s = data.sequences[0]
+    assert raw.predict(s.betas, s.poses, s.trans, s.fps).shape == (s.num_frames, body.num_vertices, 3)
+    split = __import__("json").loads((tmp_path / "one" / "softtissue" / "split.json").read_text())
+    assert sorted(split["train"]) == sorted(x.name for x in one.sequences if x.motion == "jump")
+    with pytest.raises(InputError, match="trained on 's._run'"):
+        train_softtissue(data, tmp_path / "leak", body=body,
+                         config=_tiny_config(base=str(tmp_path / "lomo"), test_motions="run"))
+    # The base's sizes win over the run's own (ae_latent 4 here, 8 in the base).
+    train_softtissue(data, tmp_path / "size", body=body,
+                     config=_tiny_config(base=str(tmp_path / "base"), ae_latent=4, test_motions="walk,run"))
+    assert load_softtissue_model(tmp_path / "size").regressor.latent == 8
+    with pytest.raises(InputError, match="holds no trained SoftSMPL pose_ae"):
+        train_softtissue(data, tmp_path / "nobase", body=body, config=_tiny_config(base=str(tmp_path / "eval")))
+
+    rep = evaluate_softtissue([tmp_path / n for n in ("full", "raw", "one", "base")], data, tmp_path / "eval",
+                              body=body, timing_frames=5)
+    by = {Path(m["folder"]).name: m for m in rep["models"]}
+    assert by["base"]["sequences"] == [] and by["base"]["training"]["reg_epochs"] == 0
+    assert by["one"]["training"]["motion_transfer"] is False and by["raw"]["training"]["pose_input"] == "pose"
+    sv = by["full"]["speed_vs_mass"]
+    assert sv["light"]["body_mass_proxy"] < sv["heavy"]["body_mass_proxy"]
+    assert sv["true_heavy_over_light"] == pytest.approx(sv["heavy"]["true_mps"] / sv["light"]["true_mps"])
+    md = (tmp_path / "eval" / "softtissue_eval.md").read_text()
+    assert "autoencoder only" in md and "| raw | pose | yes |" in md and "| one | code | no |" in md
 
 
 def test_pca_frames_stride_a_list_of_sequences_like_their_concatenation(monkeypatch):

@@ -46,7 +46,9 @@ def load_softtissue_source(data: str, body_file: str | None, *, max_frames: int 
 def run_train_softtissue(*, data: str, body: str | None, out: Path, device: str, time_budget: float | None,
                          restart: bool, max_frames: int | None, test_motions: str | None, test_subjects: str | None,
                          pose_epochs: int | None, ae_epochs: int | None, reg_epochs: int | None,
-                         ae_latent: int | None, seed: int | None, echo, progress_factory) -> None:
+                         ae_latent: int | None, seed: int | None, pose_input: str | None = None,
+                         motion_transfer: bool | None = None, base: str | None = None, echo,
+                         progress_factory) -> None:
     from simgen.learn.softtissue.train import SoftTissueConfig, train_softtissue
 
     if time_budget is not None and not time_budget > 0:
@@ -61,7 +63,8 @@ def run_train_softtissue(*, data: str, body: str | None, out: Path, device: str,
         # A store's own split (its spec's test_motions, else the library's test clips) by default.
         test_motions = ",".join(sorted({s.motion for s in dataset.sequences if s.meta.get("split") == "test"})) or None
     given = {"pose_epochs": pose_epochs, "ae_epochs": ae_epochs, "reg_epochs": reg_epochs, "ae_latent": ae_latent,
-             "test_motions": test_motions, "test_subjects": test_subjects, "seed": seed}
+             "test_motions": test_motions, "test_subjects": test_subjects, "seed": seed, "pose_input": pose_input,
+             "motion_transfer": motion_transfer, "base": base}
     config = replace(SoftTissueConfig(), **{k: v for k, v in given.items() if v is not None})
     config.check()
     total = config.pose_epochs + config.ae_epochs + config.reg_epochs
@@ -86,6 +89,10 @@ def run_eval_softtissue(*, models: str, data: str, body: str | None, out: Path, 
                                                      progress=lambda done, total: update(done, total))
     report = evaluate_softtissue(folders, dataset, out, body=model_body, device=device, timing_frames=timing_frames)
     for m in report["models"]:
+        if not m["sequences"]:
+            echo(f"{m['folder']}: AE {m['ae_latent']} " + ", ".join(f"{g} {v:.2f} mm" for g, v in m["ae_mm"].items())
+                 + " (autoencoder only: its regressor was not trained)")
+            continue
         errs = [s["error_mm"] for s in m["sequences"]]
         base = [s["no_soft_tissue_mm"] for s in m["sequences"]]
         echo(f"{m['folder']}: AE {m['ae_latent']} "

@@ -26,7 +26,7 @@ import numpy as np
 from simgen.errors import InputError
 
 __all__ = ["SoftTissueSequence", "SoftTissueData", "synthetic_softtissue_data", "synthetic_displacements",
-           "soft_region_weights", "root_local_acceleration"]
+           "soft_region_weights", "root_local_acceleration", "one_shape_per_motion"]
 
 
 @dataclass
@@ -154,6 +154,22 @@ class SoftTissueData:
             "held_out_both": self.subset(lambda s: s.motion in test_motions and s.subject in test_subjects),
         }
         return train, {k: v for k, v in groups.items() if v.sequences}
+
+
+def one_shape_per_motion(data: "SoftTissueData") -> "SoftTissueData":
+    """The sequences a capture without motion transfer would have (thesis section 3.3.2's ablation): each
+    clip, a (motion, mirrored) pair, performed by one subject only, the i-th clip in sorted order by the
+    (i mod S)-th of the S subjects in sorted order, so that every subject keeps about 1/S of the clips.
+    Where the chosen subject lacks the clip, the next subject in order that has it."""
+    subjects = data.subjects()
+    have: dict[tuple, dict] = {}
+    for s in data.sequences:
+        have.setdefault((s.motion, bool(s.meta.get("mirrored", False))), {})[s.subject] = s.name
+    keep = set()
+    for i, clip in enumerate(sorted(have)):
+        order = subjects[i % len(subjects):] + subjects[:i % len(subjects)]
+        keep.add(have[clip][next(sub for sub in order if sub in have[clip])])
+    return data.subset(lambda s: s.name in keep)
 
 
 # ------------------------------------------------------------------------------------ synthetic test signal

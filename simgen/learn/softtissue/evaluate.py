@@ -26,7 +26,7 @@ import torch
 
 from simgen.errors import InputError
 
-__all__ = ["evaluate_softtissue", "THESIS_TABLE_3_1", "PCA_SIZES"]
+__all__ = ["evaluate_softtissue", "plot_speed_vs_mass", "THESIS_TABLE_3_1", "PCA_SIZES"]
 
 #: Thesis Table 3.1 (Dyna, held-out sequences): mean vertex error [mm] by subspace size.
 THESIS_TABLE_3_1 = {"pca": {25: 3.82, 50: 3.17, 100: 2.38}, "ae": {25: 3.02, 50: 2.58, 100: 2.09}}
@@ -47,7 +47,7 @@ def _pca_table(train, groups: dict, sizes: list[int]) -> dict:
     bases = {}
     for k in sizes:
         mean, comps, scales = pca_basis(X, k)
-        bases[k] = (mean, comps[scales > 1e-8])   # the data's own directions (fewer with fewer frames)
+        bases[k] = (mean, comps[scales > 1e-9 * max(scales[0], 1e-30)])   # the data's own directions only
     out = {k: {} for k in sizes}
     for name, g in groups.items():
         sums, n = dict.fromkeys(sizes, 0.0), 0
@@ -94,6 +94,33 @@ def _regressor_rows(model, groups: dict, body, density: float) -> list[dict]:
                          "speed_true_mps": mean_speed(s.displacements, s.fps),
                          "speed_pred_mps": mean_speed(pred, s.fps)})
     return rows
+
+
+def _training(model) -> dict:
+    """How the model's regressor was trained: epochs, pose input, motion transfer, base folder."""
+    from simgen.learn.checkpoint import read_config
+
+    c = read_config(model.folder / "regressor").get("training", {}).get("config", {})
+    return {"reg_epochs": int(c.get("reg_epochs", 1)), "ae_epochs": c.get("ae_epochs"),
+            "pose_input": model.regressor.pose_input, "motion_transfer": bool(c.get("motion_transfer", True)),
+            "base": c.get("base", "")}
+
+
+def _speed_summary(rows: list[dict]) -> dict:
+    """Fig. 3.7 in numbers: mean |dDelta/dt| [m/s] predicted and true at the lightest and the heaviest
+    shape (body-mass proxy) among the held-out sequences, and their ratios (heavy / light)."""
+    if not rows:
+        return {}
+    mass = sorted({round(r["body_mass_proxy"], 6) for r in rows})
+    out = {}
+    for label, m in (("light", mass[0]), ("heavy", mass[-1])):
+        sel = [r for r in rows if round(r["body_mass_proxy"], 6) == m]
+        out[label] = {"body_mass_proxy": m, "true_mps": float(np.mean([r["speed_true_mps"] for r in sel])),
+                      "pred_mps": float(np.mean([r["speed_pred_mps"] for r in sel]))}
+    for k in ("true", "pred"):
+        light = out["light"][f"{k}_mps"]
+        out[f"{k}_heavy_over_light"] = out["heavy"][f"{k}_mps"] / light if light > 0 else None
+    return out
 
 
 def _timing(model, seq, frames: int) -> dict:
@@ -143,14 +170,19 @@ def evaluate_softtissue(models, data, out, *, body, device: str = "cpu", timing_
               "models": [], "thesis": {"table_3_1_mm": THESIS_TABLE_3_1, "runtime_ms": THESIS_RUNTIME_MS}}
     longest = max((s for g in groups.values() for s in g.sequences), key=lambda s: s.num_frames)
     for f, m in loaded:
+        trained = _training(m)
+        rows = _regressor_rows(m, groups, body, FleshParams().density) if trained["reg_epochs"] > 0 else []
         report["models"].append({"folder": str(f), "ae_latent": m.soft_ae.latent, "ae_mm": _ae_row(m, groups),
-                                 "sequences": _regressor_rows(m, groups, body, FleshParams().density),
+                                 "training": trained, "sequences": rows, "speed_vs_mass": _speed_summary(rows),
                                  "timing": _timing(m, longest, timing_frames)})
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "softtissue_eval.json").write_text(json.dumps(report, indent=2) + "\n")
     (out / "softtissue_eval.md").write_text(_markdown(report))
-    _plot(report, out / "speed_vs_mass.png")
+    try:
+        plot_speed_vs_mass(report, out / "speed_vs_mass.png")
+    except ImportError:   # a machine without matplotlib: plot_speed_vs_mass(json report) draws it later
+        pass
     return report
 
 
@@ -169,8 +201,12 @@ def _markdown(r: dict) -> str:
         th = THESIS_TABLE_3_1
         thesis = f"{th['pca'][int(k)]} / {th['ae'][int(k)]}" if int(k) in th["pca"] else "-"
         lines.append(f"| {k} | " + " | ".join(f"{row[g]:.2f}" for g in groups) + f" | {ae_text} | {thesis} |")
+    lines += _fig_3_7_lines(r)
     for m in r["models"]:
         t = m["timing"]
+        if not m["sequences"]:
+            lines += ["", f"## {m['folder']}: autoencoder only (regressor not trained)"]
+            continue
         lines += ["", f"## Regressor: {m['folder']}", "",
                   f"{t['ms_per_frame']:.2f} ms per frame on {t['device']} (thesis {THESIS_RUNTIME_MS} ms); "
                   f"{sum(t['parameters'].values()):,} parameters ({t['megabytes_float32']:.1f} MB in float32: "
@@ -184,22 +220,53 @@ def _markdown(r: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _plot(r: dict, path: Path) -> None:
+def _fig_3_7_lines(r: dict) -> list[str]:
+    """The regressors side by side: error, and speed at the lightest and heaviest held-out shape."""
+    models = [m for m in r["models"] if m["sequences"]]
+    if not models:
+        return []
+    lines = ["", "## Regressors side by side (Fig. 3.7: heavier bodies move more)", "",
+             "| model | pose input | motion transfer | error mm | no soft tissue mm | speed light true / pred [cm/s] "
+             "| speed heavy true / pred [cm/s] | heavy / light true / pred |", "|---|---|---|---:|---:|---:|---:|---:|"]
+    for m in models:
+        sv, t = m["speed_vs_mass"], m["training"]
+        ratio = lambda v: "-" if v is None else f"{v:.2f}"  # noqa: E731
+        lines.append(
+            f"| {Path(m['folder']).name} | {t['pose_input']} | {'yes' if t['motion_transfer'] else 'no'} | "
+            f"{np.mean([s['error_mm'] for s in m['sequences']]):.2f} | "
+            f"{np.mean([s['no_soft_tissue_mm'] for s in m['sequences']]):.2f} | "
+            f"{100 * sv['light']['true_mps']:.2f} / {100 * sv['light']['pred_mps']:.2f} | "
+            f"{100 * sv['heavy']['true_mps']:.2f} / {100 * sv['heavy']['pred_mps']:.2f} | "
+            f"{ratio(sv['true_heavy_over_light'])} / {ratio(sv['pred_heavy_over_light'])} |")
+    return lines
+
+
+def plot_speed_vs_mass(r: dict, path: Path) -> None:
+    """Mean vertex speed against body mass: the ground truth and each regressor, one point per held-out
+    sequence and a line through each body mass's mean (thesis Fig. 3.7). r: the report
+    (softtissue_eval.json); path: the PNG."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(6, 4), dpi=120)
-    first = r["models"][0]["sequences"]
-    ax.scatter([s["body_mass_proxy"] for s in first], [100 * s["speed_true_mps"] for s in first], c="k",
-               marker="o", label="ground truth")
-    for m in r["models"]:
-        ax.scatter([s["body_mass_proxy"] for s in m["sequences"]], [100 * s["speed_pred_mps"] for s in m["sequences"]],
-                   marker="x", label=f"{Path(m['folder']).name} (AE {m['ae_latent']})")
+    models = [m for m in r["models"] if m["sequences"]]
+    if not models:
+        return
+    fig, ax = plt.subplots(figsize=(7, 4.5), dpi=120)
+
+    def draw(rows, key, label, **style):
+        mass = np.array([s["body_mass_proxy"] for s in rows])
+        speed = 100 * np.array([s[key] for s in rows])
+        line = ax.plot(*zip(*[(m, speed[mass == m].mean()) for m in np.unique(mass)]), label=label, **style)[0]
+        ax.scatter(mass, speed, s=8, alpha=0.35, color=line.get_color())
+
+    draw(models[0]["sequences"], "speed_true_mps", "ground truth (simulation)", color="k", lw=2.5, marker="o")
+    for m in models:
+        draw(m["sequences"], "speed_pred_mps", f"{Path(m['folder']).name} (AE {m['ae_latent']})", marker="x")
     ax.set_xlabel("body-mass proxy [kg/m^2]")
     ax.set_ylabel("mean vertex speed of Delta [cm/s]")
-    ax.set_title("Soft-tissue speed against body mass (thesis Fig. 3.7)")
+    ax.set_title("Soft-tissue speed against body mass, held-out sequences (thesis Fig. 3.7)")
     ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path)

@@ -32,7 +32,8 @@ from simgen.learn.models import INPUT_STD_FLOOR, MODEL_KINDS
 
 __all__ = ["LAMBDA_NORM", "ResidualUnit", "SoftTissueAE", "PoseAE", "SoftTissueRegressor", "face_normals",
            "normal_loss", "surface_loss", "reconstruction_loss", "pose_ae_loss", "regression_loss",
-           "motion_descriptor", "pca_basis", "pca_frames", "PCA_FRAMES", "descriptor_size"]
+           "motion_descriptor", "pca_basis", "pca_frames", "PCA_FRAMES", "descriptor_size", "POSE_INPUTS",
+           "pose_features"]
 
 LAMBDA_NORM = 1000.0  # eq. 3.8
 
@@ -138,17 +139,17 @@ def pca_frames(displacements) -> np.ndarray:
 def pca_basis(displacements: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(mean (3V,), components (k, 3V) orthonormal rows, scales (k,) = singular values / sqrt(N)) of
     the rows of ``displacements`` (N, V, 3) or (N, 3V), at most :data:`PCA_FRAMES` of them
-    (:func:`pca_frames`). Components beyond the data's rank have a scale floored at 1e-8 (they
-    encode nothing)."""
+    (:func:`pca_frames`). Components beyond the data's rank are random orthonormal directions with
+    scale 0 (the data has nothing along them)."""
     displacements = pca_frames(displacements)
     X = np.asarray(displacements, dtype=np.float64).reshape(len(displacements), -1)
     mean = X.mean(0)
     _, s, Vt = np.linalg.svd(X - mean, full_matrices=False)
     comps = np.zeros((k, X.shape[1]))
-    scales = np.full(k, 1e-8)
+    scales = np.zeros(k)
     r = min(k, len(s))
     comps[:r] = Vt[:r]
-    scales[:r] = np.maximum(s[:r] / np.sqrt(max(len(X), 1)), 1e-8)
+    scales[:r] = s[:r] / np.sqrt(max(len(X), 1))
     if r < k:  # complete with random orthonormal directions so the layer stays well defined
         rng = np.random.default_rng(0)
         extra = rng.normal(size=(k - r, X.shape[1]))
@@ -182,8 +183,12 @@ class SoftTissueAE(nn.Module):
 
     @torch.no_grad()
     def init_pca(self, displacements: np.ndarray) -> None:
-        """Set the first and last layers from PCA of training displacements (N, V, 3) [m]."""
+        """Set the first and last layers from PCA of training displacements (N, V, 3) [m]. Scales are
+        floored at 1e-3 of the largest: a direction the training data barely spans would otherwise
+        blow a held-out displacement's code up by its inverse (the product of the two layers is the
+        projection whatever the scale)."""
         mean, comps, scales = pca_basis(displacements, self.latent)
+        scales = np.maximum(scales, max(1e-3 * scales[0], 1e-8))
         W = comps / scales[:, None]
         dt = self.enc_in.weight.dtype
         self.enc_in.weight.copy_(torch.as_tensor(W, dtype=dt))
@@ -251,15 +256,31 @@ class PoseAE(nn.Module):
         return v - tb.v_template
 
 
-def descriptor_size(pose_latent: int) -> int:
-    """Values per frame of gamma (eq. 3.11): 3 x pose code + root velocity and acceleration (3 + 3)."""
-    return 3 * pose_latent + 6
+#: What stands for the pose in gamma: "code", the pose autoencoder's deshaped code (section 3.3.1, the
+#: static pose disentangling), or "pose", the 69 joint axis-angles themselves (the ablation of Fig. 3.7).
+POSE_INPUTS = ("code", "pose")
+
+
+def descriptor_size(pose_size: int) -> int:
+    """Values per frame of gamma (eq. 3.11): 3 x pose features + root velocity and acceleration (3 + 3);
+    pose_size: the pose code's size, or 69 for raw joint rotations."""
+    return 3 * pose_size + 6
+
+
+def pose_features(pose_ae: "PoseAE", pose_input: str, poses: torch.Tensor) -> torch.Tensor:
+    """The pose part of gamma, (T, K): E_pose(theta) (pose_input "code") or theta's 69 joint
+    axis-angles [rad] ("pose"); poses (T, 72) [rad]."""
+    if pose_input == "code":
+        return pose_ae.encode_pose(poses[:, 3:])
+    if pose_input == "pose":
+        return poses[:, 3:]
+    raise InputError(f"pose_input must be one of {POSE_INPUTS}, got {pose_input!r}")
 
 
 def motion_descriptor(pose_codes: torch.Tensor, poses: torch.Tensor, trans: torch.Tensor, fps: float) -> torch.Tensor:
     """gamma (eq. 3.11), (T, 3K + 6): [theta-bar, d theta-bar/dt, d^2 theta-bar/dt^2, dX/dt, d^2X/dt^2].
 
-    pose_codes (T, K): E_pose of each frame; poses (T, 72) [rad] (the root orientation gives the
+    pose_codes (T, K): :func:`pose_features` of each frame; poses (T, 72) [rad] (the root orientation gives the
     local frame); trans (T, 3) [m]. Derivatives are backward differences times fps (frame 0 has zero
     velocity, frames 0-1 zero acceleration: the body starts at rest); the root's velocity [m/s] and
     acceleration [m/s^2] are rotated into the root's local frame (R_root^T v), so gamma does not
@@ -282,15 +303,20 @@ def motion_descriptor(pose_codes: torch.Tensor, poses: torch.Tensor, trans: torc
 
 class SoftTissueRegressor(nn.Module):
     """R(gamma, beta) (module docstring). num_features: |gamma|; num_betas; latent: the soft-tissue
-    code size; hidden: GRU units; layers: stacked GRU layers. Inputs are standardised with the
-    training statistics (buffers ``x_mean``, ``x_std``, the std floored like the garment models')."""
+    code size; hidden: GRU units; layers: stacked GRU layers; pose_input: what gamma's pose part is
+    (:data:`POSE_INPUTS`). Inputs are standardised with the training statistics (buffers ``x_mean``,
+    ``x_std``, the std floored like the garment models')."""
 
     kind = "softtissue_regressor"
 
-    def __init__(self, num_features: int, num_betas: int, latent: int, hidden: int = 256, layers: int = 1):
+    def __init__(self, num_features: int, num_betas: int, latent: int, hidden: int = 256, layers: int = 1,
+                 pose_input: str = "code"):
         super().__init__()
+        if pose_input not in POSE_INPUTS:
+            raise InputError(f"pose_input must be one of {POSE_INPUTS}, got {pose_input!r}")
         self.num_features, self.num_betas, self.latent, self.hidden, self.layers = (
             num_features, num_betas, latent, hidden, layers)
+        self.pose_input = pose_input
         n_in = num_features + num_betas
         self.gru = nn.GRU(n_in, hidden, num_layers=layers, batch_first=True)
         self.out = nn.Linear(hidden, latent)
@@ -300,7 +326,7 @@ class SoftTissueRegressor(nn.Module):
 
     def config(self) -> dict:
         return {"num_features": self.num_features, "num_betas": self.num_betas, "latent": self.latent,
-                "hidden": self.hidden, "layers": self.layers}
+                "hidden": self.hidden, "layers": self.layers, "pose_input": self.pose_input}
 
     @torch.no_grad()
     def set_standardisation(self, inputs: torch.Tensor) -> None:

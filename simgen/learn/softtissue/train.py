@@ -23,7 +23,7 @@ from __future__ import annotations
 import io
 import json
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -32,10 +32,10 @@ import torch
 from simgen._fileio import atomic_write_bytes
 from simgen.errors import InputError
 from simgen.learn.checkpoint import check_identity, load_model, read_config, save_model
-from simgen.learn.softtissue.data import SoftTissueData
-from simgen.learn.softtissue.models import (LAMBDA_NORM, PoseAE, SoftTissueAE, SoftTissueRegressor,
+from simgen.learn.softtissue.data import SoftTissueData, one_shape_per_motion
+from simgen.learn.softtissue.models import (LAMBDA_NORM, POSE_INPUTS, PoseAE, SoftTissueAE, SoftTissueRegressor,
                                             descriptor_size, motion_descriptor, pca_frames, pose_ae_loss,
-                                            reconstruction_loss, regression_loss)
+                                            pose_features, reconstruction_loss, regression_loss)
 from simgen.learn.train import STATE_FILE, _device, _load_state, _Logger
 from simgen.settings import setting, validate
 
@@ -71,6 +71,15 @@ class SoftTissueConfig:
     reg_lr: float = setting(1e-3, low=0.0, inclusive=False, doc="Adam learning rate of the regressor")
     reg_epochs: int = setting(100, low=0, doc="[epochs] of the regressor (thesis: 100)")
     reg_batch: int = setting(10, low=1, doc="[sequences] per regressor step (thesis: 10)")
+    pose_input: str = setting("code", choices=POSE_INPUTS,
+                              doc="the regressor's pose input: the pose AE's code (section 3.3.1) or the raw joint "
+                                  "rotations (Fig. 3.7's ablation without static pose disentangling)")
+    motion_transfer: bool = setting(True, doc="train the regressor on every shape doing every motion (section 3.3.2); "
+                                              "False keeps one shape per motion (Fig. 3.7's ablation without dynamic "
+                                              "pose disentangling)")
+    base: str = setting("", doc="a trained SoftSMPL folder whose two autoencoders this run takes, training only the "
+                                "regressor (ablations, leave-one-motion-out) with the base's autoencoder sizes; it "
+                                "must not have trained on a held-out sequence of this run")
     test_motions: str = setting("", doc="held-out motion names, comma-separated")
     test_subjects: str = setting("", doc="held-out subject ids, comma-separated")
     seed: int = setting(0, doc="random seed")
@@ -117,8 +126,7 @@ class SoftSMPL(torch.nn.Module):
 
     def descriptor(self, poses: torch.Tensor, trans: torch.Tensor, fps: float) -> torch.Tensor:
         """gamma (T, F) of one sequence: poses (T, 72) [rad], trans (T, 3) [m], fps [1/s]."""
-        codes = self.pose_ae.encode_pose(poses[:, 3:])
-        return motion_descriptor(codes, poses, trans, fps)
+        return motion_descriptor(pose_features(self.pose_ae, self.regressor.pose_input, poses), poses, trans, fps)
 
     @torch.no_grad()
     def predict(self, betas, poses, trans, fps: float) -> torch.Tensor:
@@ -177,6 +185,8 @@ class _Run:
                              f"{data.body.get('id')!r} (hash {str(data.body.get('hash'))[:12]})")
         self.data, self.dev = data, dev
         self.train, self.test = data.split(*config.held_out())
+        if not config.motion_transfer:
+            self.train = one_shape_per_motion(self.train)
         self.identity = {"body": dict(data.body)}
         self.tb = TorchBody(body, device=dev)
         self.faces = torch.as_tensor(np.array(data.faces), device=dev)
@@ -187,9 +197,13 @@ class _Run:
             "pose_ae": PoseAE(V, config.pose_latent, config.pose_hidden).to(dev),
             "soft_ae": SoftTissueAE(V, config.ae_latent, config.ae_hidden, config.ae_blocks,
                                     config.ae_dropout).to(dev),
-            "regressor": SoftTissueRegressor(descriptor_size(config.pose_latent), B, config.ae_latent,
-                                             config.reg_hidden, config.reg_layers).to(dev)}
-        self.nets["soft_ae"].init_pca(pca_frames([s.displacements for s in self.train.sequences]))
+            "regressor": SoftTissueRegressor(
+                descriptor_size(config.pose_latent if config.pose_input == "code" else 69), B, config.ae_latent,
+                config.reg_hidden, config.reg_layers, config.pose_input).to(dev)}
+        if config.base:
+            self._take_base(config)
+        else:
+            self.nets["soft_ae"].init_pca(pca_frames([s.displacements for s in self.train.sequences]))
 
         def frames(d: SoftTissueData):
             if not d.sequences:
@@ -197,15 +211,29 @@ class _Run:
             return (torch.as_tensor(np.concatenate([s.poses for s in d.sequences]), device=dev),
                     torch.as_tensor(np.concatenate([s.displacements for s in d.sequences]), device=dev))
 
-        self.frames = frames(self.train)
-        self.test_frames = frames(_merge(self.test, data)) if self.test else None
+        # Every frame on the device for the autoencoder stages (a run on a base trains neither).
+        self.frames = None if config.base else frames(self.train)
+        self.test_frames = frames(_merge(self.test, data)) if self.test and not config.base else None
         self._seq_cache: dict = {}
+
+    def _take_base(self, config: SoftTissueConfig) -> None:
+        """Load the pose and soft-tissue autoencoders of ``config.base`` (same body, trained on none of this
+        run's held-out sequences)."""
+        base = _base_folder(config.base)
+        for name in ("pose_ae", "soft_ae"):
+            self.nets[name] = load_model(base / name, identity=self.identity, device=self.dev)
+        seen = set(json.loads((base / "split.json").read_text())["train"])
+        leaked = sorted(seen & {s.name for g in self.test.values() for s in g.sequences})
+        if leaked:
+            raise InputError(f"base {config.base} trained on {leaked[0]!r}, which this run holds out "
+                             f"({len(leaked)} such sequences): its autoencoders would have seen the test data")
 
     def n_items(self, stage: str) -> int:
         return len(self.train.sequences) if stage == "regressor" else len(self.frames[0])
 
     def loss(self, stage: str, idx, config: SoftTissueConfig, test: bool = False) -> dict:
-        poses, disp = self.test_frames if test else self.frames
+        if stage != "regressor":
+            poses, disp = self.test_frames if test else self.frames
         if stage == "pose_ae":
             p = poses[idx]
             meshes = PoseAE.mesh_input(self.tb, p)
@@ -225,7 +253,7 @@ class _Run:
         pose_ae, soft_ae = self.nets["pose_ae"].eval(), self.nets["soft_ae"].eval()
         seqs = [d.sequences[int(i)] for i in idx]
         Tm = max(s.num_frames for s in seqs)
-        F, K, B = descriptor_size(pose_ae.latent), soft_ae.latent, self.data.num_betas
+        F, K, B = self.nets["regressor"].num_features, soft_ae.latent, self.data.num_betas
         gamma = torch.zeros(len(seqs), Tm, F, device=self.dev)
         target = torch.zeros(len(seqs), Tm, K, device=self.dev)
         mask = torch.zeros(len(seqs), Tm, dtype=torch.bool, device=self.dev)
@@ -234,7 +262,8 @@ class _Run:
             p = torch.as_tensor(s.poses, device=self.dev)
             t = torch.as_tensor(s.trans, device=self.dev)
             n = s.num_frames
-            gamma[k, :n] = motion_descriptor(pose_ae.encode_pose(p[:, 3:]), p, t, s.fps)
+            gamma[k, :n] = motion_descriptor(pose_features(pose_ae, self.nets["regressor"].pose_input, p), p, t,
+                                             s.fps)
             target[k, :n] = soft_ae.encode(torch.as_tensor(s.displacements, device=self.dev))
             mask[k, :n] = True
             betas[k, :len(s.betas)] = torch.as_tensor(s.betas, device=self.dev)
@@ -249,7 +278,7 @@ class _Run:
 
     @torch.no_grad()
     def val_loss(self, stage: str, config: SoftTissueConfig) -> float | None:
-        if self.test_frames is None:
+        if not self.test:
             return None
         self.nets[stage].eval()
         if stage == "regressor":
@@ -263,6 +292,26 @@ class _Run:
         return total / n
 
 
+def _base_folder(base: str) -> Path:
+    folder = Path(base)
+    if not (folder / "soft_ae").is_dir() and (folder / SOFTTISSUE_DIR).is_dir():
+        folder = folder / SOFTTISSUE_DIR
+    for name in ("pose_ae", "soft_ae"):
+        if not (folder / name / "config.json").is_file():
+            raise InputError(f"base {base} holds no trained SoftSMPL {name}")
+    return folder
+
+
+def _with_base_sizes(config: SoftTissueConfig) -> SoftTissueConfig:
+    """A run on a base takes the base's autoencoder sizes (whatever this config says about them)."""
+    if not config.base:
+        return config
+    folder = _base_folder(config.base)
+    pose, soft = (read_config(folder / n)["model"] for n in ("pose_ae", "soft_ae"))
+    return replace(config, pose_latent=pose["latent"], pose_hidden=pose["hidden"], ae_latent=soft["latent"],
+                   ae_hidden=soft["hidden"], ae_blocks=soft["blocks"], ae_dropout=soft["dropout"])
+
+
 def _merge(groups: dict, like: SoftTissueData) -> SoftTissueData:
     seqs = [s for g in groups.values() for s in g.sequences]
     return SoftTissueData(seqs, like.body, like.faces, like.template, like.source)
@@ -270,7 +319,10 @@ def _merge(groups: dict, like: SoftTissueData) -> SoftTissueData:
 
 def _reopen(prog: dict, config: SoftTissueConfig, folder: Path) -> None:
     """Resuming with more epochs: the regressor (the last stage) continues; an earlier, finished stage
-    cannot (the later stages were trained on it), so that is refused."""
+    cannot (the later stages were trained on it), so that is refused. A run on a base trains only its
+    regressor."""
+    if config.base:
+        return
     for i, stage in enumerate(STAGES[:prog["stage"]]):
         done = prog["done"].get(stage, 0)
         if config.epochs(stage) > done:
@@ -299,7 +351,7 @@ def train_softtissue(data: SoftTissueData, out: str | Path, *, body, config: Sof
     (more epochs continue a run; other settings are refused); False starts over; progress(done,
     total, info) after every step, done/total in epochs summed over the stages; checkpoint_every [s].
     """
-    config = config or SoftTissueConfig()
+    config = _with_base_sizes(config or SoftTissueConfig())
     config.check()
     dev = _device(device)
     run = _Run(data, config, dev, body)
@@ -310,6 +362,8 @@ def train_softtissue(data: SoftTissueData, out: str | Path, *, body, config: Sof
                 "sequences": [s.name for s in data.sequences]}
     state = _load_state(folder, settings, resume, dev)
     prog = {"stage": 0, "epoch": 0, "step": 0, "sums": {}, "count": 0, "losses": {}, "done": {}}
+    if config.base:   # the autoencoders come trained from the base folder
+        prog.update(stage=STAGES.index("regressor"), done={"pose_ae": config.pose_epochs, "soft_ae": config.ae_epochs})
     opt_state = None
     if state is not None:
         for k, net in run.nets.items():

@@ -1,0 +1,227 @@
+"""SoftSMPL on a soft-tissue store in one command (thesis ch. 3, issue 25): the autoencoders at every
+code size of Table 3.1, the regressor and its Fig. 3.7 ablations, leave-one-motion-out, and the
+evaluation -- each phase within a time budget, every run resumable.
+
+    python scripts/softtissue_thesis.py --data st-store --work st-runs --out st-report --device cuda
+
+Phases (runs of one phase go in parallel, as `simgen train softtissue` processes; a rerun with the
+same --work resumes each run where it stopped and skips finished ones):
+
+1. autoencoders: the pose AE and the soft-tissue AE at each ``--ae-sizes`` (100, 50, 25), the
+   store's held-out motions held out, for at most ``--ae-budget`` seconds each. A soft-tissue AE
+   that the budget stops before its 1000 epochs (thesis) is closed at the epochs it reached; the
+   report says how many.
+2. regressors, each on the autoencoders of the largest size (``--base``: only the regressor trains,
+   100 epochs at most, ``--reg-budget`` seconds): ``full``; the ablations of Fig. 3.7
+   ``no_static`` (raw joint rotations instead of the pose code), ``no_dynamic`` (one shape per clip,
+   no motion transfer) and ``neither``; and ``lomo_<motion>`` for each held-out motion (trained on
+   every other motion, the other held-out ones included; the autoencoders saw none of them).
+3. evaluation: `simgen eval softtissue` on the main split (Table 3.1 at every size, the regressors
+   side by side, speed against body mass) and each leave-one-motion-out fold on its own motion.
+
+--out gets summary.json and summary.md, the evaluation's tables and plot, and each run's log.csv.
+On a machine without matplotlib the plots are drawn afterwards with ``--out DIR --plot-only``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+REGRESSOR_VARIANTS = {"full": [], "no_static": ["--pose-input", "pose"], "no_dynamic": ["--no-motion-transfer"],
+                      "neither": ["--pose-input", "pose", "--no-motion-transfer"]}
+
+
+def _log(msg: str) -> None:
+    print(f"[{time.strftime('%H:%M:%S')}] {msg}", flush=True)
+
+
+def _epochs(folder: Path) -> dict:
+    """{stage: epochs logged} of a run folder (OUT/softtissue/log.csv)."""
+    log = folder / "softtissue" / "log.csv"
+    out: dict = {}
+    if log.is_file():
+        for row in csv.DictReader(open(log)):
+            out[row["stage"]] = max(out.get(row["stage"], 0), int(row["epoch"]))
+    return out
+
+
+def _finished(folder: Path) -> bool:
+    return (folder / "softtissue" / "regressor" / "config.json").is_file()
+
+
+def _train_all(runs: dict, common: list[str], work: Path, budget: float, jobs: int) -> dict:
+    """Run `simgen train softtissue` for each {name: extra args} not finished yet, ``jobs`` at a time;
+    {name: {"seconds", "returncode"}}."""
+    todo = [(n, a) for n, a in runs.items() if not _finished(work / n)]
+    done, running = {}, []
+    while todo or running:
+        while todo and len(running) < jobs:
+            name, extra = todo.pop(0)
+            cmd = [sys.executable, "-m", "simgen.cli", "train", "softtissue", *common, "--out", str(work / name),
+                   "--time-budget", str(budget), *extra]
+            logf = open(work / f"{name}.log", "a")
+            running.append((name, subprocess.Popen(cmd, stdout=logf, stderr=subprocess.STDOUT), time.monotonic(),
+                            logf))
+            _log(f"started {name}")
+        time.sleep(1.0)
+        for item in list(running):
+            name, proc, t0, logf = item
+            if proc.poll() is not None:
+                logf.close()
+                running.remove(item)
+                done[name] = {"seconds": round(time.monotonic() - t0, 1), "returncode": proc.returncode}
+                _log(f"{name} ended ({proc.returncode}) after {done[name]['seconds']} s: {_epochs(work / name)}")
+                if proc.returncode != 0:
+                    print((work / f"{name}.log").read_text()[-3000:], file=sys.stderr)
+    return done
+
+
+def _close_at_reached(name: str, common: list[str], extra: list[str], work: Path) -> None:
+    """A run the budget stopped: finish it at the epochs it reached (a stage not reached trains one)."""
+    reached = _epochs(work / name)
+    epochs = {"--pose-epochs": "pose_ae", "--ae-epochs": "soft_ae", "--reg-epochs": "regressor"}
+    flags = [x for flag, stage in epochs.items() if flag not in extra for x in (flag, str(max(reached.get(stage, 0), 1)))]
+    cmd = [sys.executable, "-m", "simgen.cli", "train", "softtissue", *common, "--out", str(work / name), *extra, *flags]
+    with open(work / f"{name}.log", "a") as logf:
+        subprocess.run(cmd, stdout=logf, stderr=subprocess.STDOUT, check=True)
+    _log(f"{name} closed at {_epochs(work / name)}")
+
+
+def _phase(runs: dict, common: list[str], work: Path, budget: float, jobs: int) -> dict:
+    """Train ``runs`` ({name: extra args}) within ``budget`` seconds each, close the ones it stopped;
+    the phase's record for summary.json."""
+    t0 = time.monotonic()
+    ran = _train_all(runs, common, work, budget, jobs)
+    closed = [n for n in runs if not _finished(work / n)]
+    for name in closed:
+        _close_at_reached(name, common, runs[name], work)
+    return {"wall_s": round(time.monotonic() - t0, 1), "budget_s": budget,
+            "runs": {n: {**ran.get(n, {}), "epochs": _epochs(work / n), "stopped_by_budget": n in closed}
+                     for n in runs}}
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--data", help="soft-tissue store (`simgen dataset generate softtissue`)")
+    p.add_argument("--work", help="run folders (kept: a rerun resumes)")
+    p.add_argument("--out", required=True, help="report folder")
+    p.add_argument("--device", default="cuda")
+    p.add_argument("--ae-sizes", type=int, nargs="+", default=[100, 50, 25])
+    p.add_argument("--ae-budget", type=float, default=420.0, help="seconds per autoencoder run")
+    p.add_argument("--reg-budget", type=float, default=240.0, help="seconds per regressor run")
+    p.add_argument("--jobs", type=int, default=8, help="training processes at once")
+    p.add_argument("--phases", default="ae,reg,eval", help="which phases to run, comma-separated")
+    p.add_argument("--timing-frames", type=int, default=240)
+    p.add_argument("--plot-only", action="store_true", help="only draw --out's plots from its JSON (for a GPU "
+                   "machine without matplotlib)")
+    a = p.parse_args(argv)
+    if a.plot_only:
+        from simgen.learn.softtissue.evaluate import plot_speed_vs_mass
+
+        for j in sorted(Path(a.out).glob("*/softtissue_eval.json")):
+            plot_speed_vs_mass(json.loads(j.read_text()), j.parent / "speed_vs_mass.png")
+            _log(f"drew {j.parent / 'speed_vs_mass.png'}")
+        return 0
+    if not (a.data and a.work):
+        p.error("--data and --work are needed (all but --plot-only)")
+
+    work, out = Path(a.work), Path(a.out)
+    work.mkdir(parents=True, exist_ok=True)
+    out.mkdir(parents=True, exist_ok=True)
+    phases = set(a.phases.split(","))
+    summary_path = out / "summary.json"
+    summary = json.loads(summary_path.read_text()) if summary_path.is_file() else {}
+    summary.update(data=str(a.data), device=a.device, commit=os.environ.get("SIMGEN_COMMIT", "unknown"))
+    common = ["--data", str(a.data), "--device", a.device]
+    sizes = sorted(set(a.ae_sizes), reverse=True)
+    base = work / f"ae{sizes[0]}"
+
+    if "ae" in phases:
+        names = {f"ae{k}": ["--ae-latent", str(k), "--reg-epochs", "0"] for k in sizes}
+        summary["autoencoders"] = _phase(names, common, work, a.ae_budget, a.jobs)
+        summary_path.write_text(json.dumps(summary, indent=1) + "\n")
+
+    test_motions = json.loads((base / "softtissue" / "split.json").read_text())["test_motions"]
+    if "reg" in phases:
+        runs = {**REGRESSOR_VARIANTS, **{f"lomo_{m}": ["--test-motions", m] for m in test_motions}}
+        runs = {n: ["--base", str(base), *x] for n, x in runs.items()}
+        summary["regressors"] = _phase(runs, common, work, a.reg_budget, a.jobs)
+        summary_path.write_text(json.dumps(summary, indent=1) + "\n")
+
+    if "eval" in phases:
+        summary["eval"] = _evaluate(a, work, out, sizes, test_motions)
+        summary_path.write_text(json.dumps(summary, indent=1) + "\n")
+    for folder in sorted(work.iterdir()):
+        if (folder / "softtissue" / "log.csv").is_file():
+            shutil.copy(folder / "softtissue" / "log.csv", out / f"log_{folder.name}.csv")
+    (out / "summary.md").write_text(_markdown(summary, out))
+    _log(f"report: {out / 'summary.md'}")
+    return 0
+
+
+def _evaluate(a, work: Path, out: Path, sizes: list[int], test_motions: list[str]) -> dict:
+    from simgen._warp_log import quiet_warp
+    from simgen.learn.softtissue._cli import load_softtissue_source
+    from simgen.learn.softtissue.evaluate import evaluate_softtissue
+
+    quiet_warp()
+    t0 = time.monotonic()
+    data, body = load_softtissue_source(str(a.data), None)
+    _log(f"read the store in {time.monotonic() - t0:.0f} s")
+    main_models = [work / n for n in REGRESSOR_VARIANTS] + [work / f"ae{k}" for k in sizes[1:]]
+    rep = evaluate_softtissue(main_models, data, out / "main", body=body, device=a.device,
+                              timing_frames=a.timing_frames)
+    full = {r["sequence"]: r for r in rep["models"][0]["sequences"]}
+    lomo = []
+    for m in test_motions:
+        fold = evaluate_softtissue([work / f"lomo_{m}"], data, out / f"lomo_{m}", body=body, device=a.device,
+                                   timing_frames=10)
+        rows = [r for r in fold["models"][0]["sequences"] if r["group"] == "held_out_motion"]
+        lomo.append({"motion": m, "sequences": len(rows),
+                     "error_mm": float(sum(r["error_mm"] for r in rows) / len(rows)),
+                     "main_split_error_mm": float(sum(full[r["sequence"]]["error_mm"] for r in rows) / len(rows)),
+                     "no_soft_tissue_mm": float(sum(r["no_soft_tissue_mm"] for r in rows) / len(rows))})
+        _log(f"lomo {m}: {lomo[-1]}")
+    return {"seconds": round(time.monotonic() - t0, 1), "main": {
+        "pca_mm": rep["pca_mm"], "held_out": rep["held_out"], "train_frames": rep["train_frames"],
+        "models": [{k: v for k, v in m.items() if k != "sequences"} |
+                   {"error_mm": (sum(s["error_mm"] for s in m["sequences"]) / len(m["sequences"])
+                                 if m["sequences"] else None)} for m in rep["models"]]},
+        "leave_one_motion_out": lomo}
+
+
+def _markdown(s: dict, out: Path) -> str:
+    lines = [f"# SoftSMPL on {s.get('data')} ({s.get('device')}, commit {s.get('commit')})", ""]
+    for phase in ("autoencoders", "regressors"):
+        if phase in s:
+            lines += [f"## {phase}: {s[phase]['wall_s']} s (budget {s[phase]['budget_s']} s per run)", "",
+                      "| run | seconds | epochs reached |", "|---|---:|---|"]
+            for n, r in s[phase]["runs"].items():
+                lines.append(f"| {n} | {r.get('seconds', '-')} | "
+                             + ", ".join(f"{k} {v}" for k, v in r["epochs"].items())
+                             + (" (closed at the budget)" if r.get("stopped_by_budget") else "") + " |")
+            lines.append("")
+    ev = s.get("eval")
+    if ev:
+        main_md = out / "main" / "softtissue_eval.md"
+        if main_md.is_file():
+            lines += [main_md.read_text().replace("# SoftSMPL on", "## Main split: SoftSMPL on", 1), ""]
+        lines += ["## Leave one motion out (the autoencoders saw none of these motions)", "",
+                  "| motion | sequences | error mm (fold) | error mm (all held-out motions out) | no soft tissue mm |",
+                  "|---|---:|---:|---:|---:|"]
+        for r in ev["leave_one_motion_out"]:
+            lines.append(f"| {r['motion']} | {r['sequences']} | {r['error_mm']:.2f} | {r['main_split_error_mm']:.2f} "
+                         f"| {r['no_soft_tissue_mm']:.2f} |")
+    return "\n".join(lines) + "\n"
+
+
+if __name__ == "__main__":
+    sys.exit(main())
