@@ -129,6 +129,25 @@ def test_autoencoder_is_pca_at_init_and_learns(body, data):
     assert float(reconstruction_loss(noisy, ae(noisy), template, faces)["total"]) < 0.99 * first
 
 
+def test_autoencoder_training_starts_from_pca_without_a_jump(body, data):
+    # Displacements of millimetres: the first Adam steps (lr 1e-4, the thesis's) must refine the PCA
+    # start, not swamp decoder weights that in metres would be ~1e-6 (each step moves a weight ~lr).
+    D = torch.tensor(np.concatenate([s.displacements for s in data.sequences]), dtype=torch.float32)
+    D = D + 2e-4 * torch.randn(D.shape, generator=torch.Generator().manual_seed(1))
+    ae = SoftTissueAE(body.num_vertices, latent=16, hidden=32, blocks=2, dropout=0.0)
+    ae.init_pca(D.numpy())
+    template, faces = torch.tensor(body.v_template, dtype=torch.float32), torch.tensor(np.asarray(body.faces))
+    opt = torch.optim.Adam(ae.parameters(), lr=1e-4)
+    losses = []
+    for _ in range(10):
+        loss = reconstruction_loss(D, ae(D), template, faces)["total"]
+        losses.append(float(loss))
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    assert max(losses) < 1.5 * losses[0], losses
+
+
 def test_face_normal_term():
     template = torch.tensor([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]], dtype=torch.float64)
     faces = torch.tensor([[0, 1, 2]])

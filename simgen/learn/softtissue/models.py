@@ -176,6 +176,9 @@ class SoftTissueAE(nn.Module):
         self.enc_blocks = nn.Sequential(*[ResidualUnit(latent, hidden, dropout) for _ in range(blocks)])
         self.dec_blocks = nn.Sequential(*[ResidualUnit(latent, hidden, dropout) for _ in range(blocks)])
         self.dec_out = nn.Linear(latent, n)
+        # [m]: the layers see Delta / unit (unit: the largest PCA scale), so that the decoder's weights
+        # are not ~1e-6 in metres, where every Adam step (~lr per weight) would be larger than they are.
+        self.register_buffer("unit", torch.ones(()))
 
     def config(self) -> dict:
         return {"num_vertices": self.num_vertices, "latent": self.latent, "hidden": self.hidden,
@@ -188,21 +191,23 @@ class SoftTissueAE(nn.Module):
         blow a held-out displacement's code up by its inverse (the product of the two layers is the
         projection whatever the scale)."""
         mean, comps, scales = pca_basis(displacements, self.latent)
-        scales = np.maximum(scales, max(1e-3 * scales[0], 1e-8))
-        W = comps / scales[:, None]
+        unit = max(float(scales[0]), 1e-8)
+        rel = np.maximum(scales / unit, 1e-3)           # scales in units of the largest
+        W = comps / rel[:, None]
         dt = self.enc_in.weight.dtype
+        self.unit.fill_(unit)
         self.enc_in.weight.copy_(torch.as_tensor(W, dtype=dt))
-        self.enc_in.bias.copy_(torch.as_tensor(-W @ mean, dtype=dt))
-        self.dec_out.weight.copy_(torch.as_tensor((comps * scales[:, None]).T, dtype=dt))
-        self.dec_out.bias.copy_(torch.as_tensor(mean, dtype=dt))
+        self.enc_in.bias.copy_(torch.as_tensor(-W @ (mean / unit), dtype=dt))
+        self.dec_out.weight.copy_(torch.as_tensor((comps * rel[:, None]).T, dtype=dt))
+        self.dec_out.bias.copy_(torch.as_tensor(mean / unit, dtype=dt))
 
     def encode(self, delta: torch.Tensor) -> torch.Tensor:
         """(N, V, 3) [m] -> (N, latent)."""
-        return self.enc_blocks(self.enc_in(delta.flatten(1)))
+        return self.enc_blocks(self.enc_in(delta.flatten(1) / self.unit))
 
     def decode(self, code: torch.Tensor) -> torch.Tensor:
         """(..., latent) -> (..., V, 3) [m]."""
-        out = self.dec_out(self.dec_blocks(code))
+        out = self.dec_out(self.dec_blocks(code)) * self.unit
         return out.reshape(*code.shape[:-1], self.num_vertices, 3)
 
     def forward(self, delta):
