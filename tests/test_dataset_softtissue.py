@@ -188,21 +188,21 @@ def test_the_preset_and_spec_errors():
 def test_a_failed_simulation_is_not_written_and_bad_shapes_write_nothing(tmp_path, monkeypatch):
     import simgen.softtissue.simulate as sim
 
-    real = sim.simulate_softtissue
+    real = sim.simulate_softtissue_jobs
 
     def diverging(*args, **kw):
         out = real(*args, **kw)
         out[0].displacements[1, 5, 0] = np.nan
         return out
 
-    monkeypatch.setattr(sim, "simulate_softtissue", diverging)
+    monkeypatch.setattr(sim, "simulate_softtissue_jobs", diverging)
     spec = {**SPEC, "motions": ["jump"], "test_motions": None, "mirror": False}
     spec.pop("test_motions")
     r = generate_softtissue(spec, str(tmp_path / "nan"))
     assert list(r.failed) == ["jump__light"] and r.written == 1 and r.pending == 1
     rep = check_softtissue_store(tmp_path / "nan")
     assert not rep["passed"] and any("jump__light" in p and "failed" in p for p in rep["problems"])
-    monkeypatch.setattr(sim, "simulate_softtissue", real)
+    monkeypatch.setattr(sim, "simulate_softtissue_jobs", real)
     r = generate_softtissue(spec, str(tmp_path / "nan"))         # the rerun simulates it again
     assert r.written == 1 and not r.failed and check_softtissue_store(tmp_path / "nan", require_complete=True)["passed"]
     # A shape the body cannot take is refused before the store exists.

@@ -175,6 +175,42 @@ def test_shapes_batched_in_one_system_equal_their_runs_alone(body):
     assert both[1].meta["layer_m"] > both[0].meta["layer_m"]         # the heavier shape's layer is thicker
 
 
+def test_clips_batched_in_one_system_equal_their_runs_alone(body):
+    # The dataset generator's unit: several clips (of different lengths) and shapes in one system.
+    # The PCG runs per instance until every one has converged, so a batch differs from the runs alone
+    # only within the solver's tolerance.
+    from simgen.softtissue import simulate_softtissue
+    from simgen.softtissue.simulate import simulate_softtissue_jobs
+
+    sway = _clip("sway", np.stack([0.02 * np.sin(np.arange(8) / 3.0), np.full(8, 0.9), np.zeros(8)], axis=1))
+    hop = _clip("hop", np.stack([np.zeros(5), 0.9 + 0.03 * np.sin(np.arange(5) / 1.5), np.zeros(5)], axis=1))
+    heavy = np.zeros(body.num_betas)
+    heavy[2] = 2.0
+    batch = simulate_softtissue_jobs(body, [(sway, heavy, "heavy"), (hop, np.zeros(body.num_betas), "zero")])
+    (a,) = simulate_softtissue(body, sway, heavy[None], subjects=["heavy"])
+    (b,) = simulate_softtissue(body, hop)
+    for got, alone in ((batch[0], a), (batch[1], b)):
+        assert got.num_frames == alone.num_frames and got.motion == alone.motion
+        scale = np.abs(alone.displacements).max()
+        assert scale > 1e-3
+        np.testing.assert_allclose(got.displacements, alone.displacements, atol=2e-3 * scale)
+        assert got.meta["min_det"] == pytest.approx(alone.meta["min_det"], abs=1e-4)
+    assert batch[0].num_frames == 8 and batch[1].num_frames == 5 and batch[1].subject == "zero"
+
+
+def test_the_inversion_measure_is_det_of_the_deformation_gradient(slab):
+    # u = G x on every node: det(I + grad u) = det(I + G) on every tetrahedron, whatever its shape.
+    from simgen.softtissue.simulate import _tet_min_det
+
+    model, x, _ = slab
+    Gm = np.array([[0.1, 0.3, 0.0], [-0.2, -0.4, 0.05], [0.0, 0.1, 0.2]])
+    u = wp.array((x @ Gm.T).astype(np.float32), dtype=wp.vec3, device="cpu")
+    out = wp.full(1, 1e30, dtype=wp.float32, device="cpu")
+    wp.launch(_tet_min_det, dim=model.num_tets_total, device="cpu",
+              inputs=[u, model.tets, model.inv_rest, model.num_tets_total], outputs=[out])
+    assert out.numpy()[0] == pytest.approx(np.linalg.det(np.eye(3) + Gm), rel=1e-4)
+
+
 def test_the_skeleton_is_low_passed_before_it_is_differenced(body):
     """30 Hz jitter of 1 mm on the root (an acceleration of 36 m/s^2 if differenced raw) is removed by
     the 12 Hz low-pass; the 1 Hz sway under it keeps its acceleration."""

@@ -51,8 +51,8 @@ class SoftTissueSpec:
     bundled one); shapes: ((id, betas), ...) with betas [-] as long as the body's or shorter
     (zeros follow); motions: library clip names; test_motions: held out (split "test"; default: the
     library's test clips); mirror: also each clip's mirror image; clip_start [s], max_seconds [s]
-    (None: to the end): the window of each clip simulated; batch_size: shapes per simulation (0:
-    all of a motion at once); device: "auto", "cpu", "cuda:N"; flesh: the simulation's
+    (None: to the end): the window of each clip simulated; batch_size: (clip, shape) sequences per
+    batched simulation (0: the number of shapes); device: "auto", "cpu", "cuda:N"; flesh: the simulation's
     :class:`simgen.softtissue.FleshParams`; output: default store folder; description: one line.
     """
 
@@ -379,50 +379,81 @@ def generate_softtissue(spec, out: str | None = None, *, max_sequences: int | No
 
 
 def _run(spec, store, body, mesh, report, max_sequences, time_budget, t0, progress) -> None:
-    from simgen.softtissue.simulate import simulate_softtissue
+    """Simulate the sequences not stored yet, ``spec.batch_size`` (clip, shape) jobs per batched
+    simulation, each batch's writes in a thread behind the next batch's simulation."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from simgen.softtissue.simulate import simulate_softtissue_jobs
 
     device = spec.resolved_device()
-    groups = []
-    for motion, mirrored in spec.plan():
-        todo = [sid for sid, _ in spec.shapes if not store.done("sequence", sequence_id(motion, mirrored, sid))]
-        size = spec.batch_size or len(todo) or 1
-        groups += [(motion, mirrored, todo[i:i + size]) for i in range(0, len(todo), size)]
-    total = sum(len(g[2]) for g in groups)
-    left = total if max_sequences is None else min(total, max_sequences)
-    done, per_frame_s = 0, None   # [s] wall per simulated frame of one shape, from the runs so far
-    for motion, mirrored, ids in groups:
-        ids = ids[:max(left - done, 0)]
-        if not ids:
-            report.stopped = report.stopped or f"--max-sequences {max_sequences} reached"
-            break
-        clip = _clip(spec, motion, mirrored)
-        frames = int(np.floor(clip.duration * spec.flesh.fps + 1e-9)) + 1
-        if time_budget is not None and per_frame_s is not None and \
-                time.perf_counter() - t0 + per_frame_s * frames * len(ids) > time_budget:
-            report.stopped = f"time budget of {time_budget:g} s reached"
-            break
-        t = time.perf_counter()
-        results = simulate_softtissue(body, replace(clip, name=motion + ("_mirror" if mirrored else "")),
-                                      _betas(spec, body, ids), spec.flesh, mesh=mesh, device=device, subjects=ids)
-        report.simulate_wall += time.perf_counter() - t
-        for sid, res in zip(ids, results):
-            node = sequence_id(motion, mirrored, sid)
-            if not (np.all(np.isfinite(res.displacements)) and np.isfinite(res.meta["min_det"])):
-                msg = "the simulation produced non-finite displacements (not written; a rerun simulates it again)"
-                store.record({"ok": False, "kind": "sequence", "id": node, "attempt": 1, "message": msg})
-                report.failed[node] = msg
-                continue
-            arrays, attrs = _node(spec, res, motion, mirrored, sid)
-            commit = store.loc.write_node(f"sequences/{node}", arrays, attrs)
-            store.record({"ok": True, "kind": "sequence", "id": node, "checksum": commit["checksum"],
-                          "frames": attrs["frames"], "motion": motion, "shape_id": sid, "split": attrs["split"]})
-            report.written += 1
-            report.frames += attrs["frames"]
-        store.save_manifest()
-        per_frame_s = (time.perf_counter() - t0) / max(report.frames, 1)
-        done += len(ids)
-        if progress is not None:
-            progress(done, total)
+    todo = [(m, r, sid) for m, r in spec.plan() for sid, _ in spec.shapes
+            if not store.done("sequence", sequence_id(m, r, sid))]
+    if max_sequences is not None and len(todo) > max_sequences:
+        todo = todo[:max(max_sequences, 0)]
+        report.stopped = f"--max-sequences {max_sequences} reached"
+    size = spec.batch_size or len(spec.shapes)
+    groups = [todo[i:i + size] for i in range(0, len(todo), size)]
+    clips = {}
+
+    def clip(m, r):
+        if (m, r) not in clips:
+            c = _clip(spec, m, r)
+            clips[(m, r)] = replace(c, name=m + ("_mirror" if r else ""))
+        return clips[(m, r)]
+
+    done, per_frame_s, pending = 0, None, None   # per_frame_s: [s] wall per stored frame so far
+    with ThreadPoolExecutor(1) as writer:
+        for group in groups:
+            frames = sum(int(np.floor(clip(m, r).duration * spec.flesh.fps + 1e-9)) + 1 for m, r, _ in group)
+            if time_budget is not None and per_frame_s is not None and \
+                    time.perf_counter() - t0 + per_frame_s * frames > time_budget:
+                report.stopped = f"time budget of {time_budget:g} s reached"
+                break
+            t = time.perf_counter()
+            jobs = [(clip(m, r), _betas(spec, body, [sid])[0], sid) for m, r, sid in group]
+            results = simulate_softtissue_jobs(body, jobs, spec.flesh, mesh=mesh, device=device)
+            report.simulate_wall += time.perf_counter() - t
+            if pending is not None:
+                done += _record(store, report, pending.result())
+            pending = writer.submit(_write_group, spec, store, group, results)
+            per_frame_s = (time.perf_counter() - t0) / max(report.frames + frames, 1)
+            if progress is not None:
+                progress(done, len(todo))
+        if pending is not None:
+            done += _record(store, report, pending.result())
+            if progress is not None:
+                progress(done, len(todo))
+
+
+def _write_group(spec, store, group, results) -> list:
+    """Write one batch's sequences (in the writer thread); what :func:`_record` enters in the manifest."""
+    out = []
+    for (motion, mirrored, sid), res in zip(group, results):
+        node = sequence_id(motion, mirrored, sid)
+        if not (np.all(np.isfinite(res.displacements)) and np.isfinite(res.meta["min_det"])):
+            out.append((node, None, {"message": "the simulation produced non-finite displacements (not written; a "
+                                                "rerun simulates it again)"}))
+            continue
+        arrays, attrs = _node(spec, res, motion, mirrored, sid)
+        commit = store.loc.write_node(f"sequences/{node}", arrays, attrs)
+        out.append((node, commit, attrs))
+    return out
+
+
+def _record(store, report, written: list) -> int:
+    """Enter a written batch in the manifest (main thread); the number of sequences it held."""
+    for node, commit, attrs in written:
+        if commit is None:
+            store.record({"ok": False, "kind": "sequence", "id": node, "attempt": 1, "message": attrs["message"]})
+            report.failed[node] = attrs["message"]
+            continue
+        store.record({"ok": True, "kind": "sequence", "id": node, "checksum": commit["checksum"],
+                      "frames": attrs["frames"], "motion": attrs["motion"], "shape_id": attrs["shape_id"],
+                      "split": attrs["split"]})
+        report.written += 1
+        report.frames += attrs["frames"]
+    store.save_manifest()
+    return len(written)
 
 
 # ------------------------------------------------------------------------------------------ reading

@@ -35,7 +35,8 @@ from simgen.softtissue.model import FleshModel
 from simgen.softtissue.params import FleshParams
 from simgen.softtissue.solver import FleshSolver
 
-__all__ = ["simulate_softtissue", "skeleton_tracks", "rig_forces", "SoftTissueResult", "mean_speed"]
+__all__ = ["simulate_softtissue", "simulate_softtissue_jobs", "skeleton_tracks", "rig_forces", "SoftTissueResult",
+           "mean_speed"]
 
 
 @dataclass
@@ -157,15 +158,15 @@ def rig_forces(model: FleshModel, weights: wp.array, A: wp.array, dd: wp.array, 
     return out
 
 
-def _min_det(model: FleshModel, u: np.ndarray) -> np.ndarray:
-    """Smallest det(I + grad u) over each instance's tetrahedra (> 0: none inverted), (N,)."""
-    t = model.tets_host
-    out = []
-    for k, bm in enumerate(model.inv_rest_host):
-        uk = u[k]
-        ds = np.stack([uk[t[:, 1]] - uk[t[:, 0]], uk[t[:, 2]] - uk[t[:, 0]], uk[t[:, 3]] - uk[t[:, 0]]], axis=2)
-        out.append(float(np.linalg.det(np.eye(3) + ds @ bm).min()))
-    return np.array(out)
+@wp.kernel
+def _tet_min_det(u: wp.array(dtype=wp.vec3), tets: wp.array(dtype=wp.vec4i), inv_rest: wp.array(dtype=wp.mat33),
+                 tets_per_instance: int, out: wp.array(dtype=wp.float32)):
+    """out[instance] = min(out[instance], det(I + grad u)) of each tetrahedron (> 0: not inverted)."""
+    t = wp.tid()
+    k = tets[t]
+    u0 = u[k[0]]
+    ds = wp.matrix_from_cols(u[k[1]] - u0, u[k[2]] - u0, u[k[3]] - u0)
+    wp.atomic_min(out, t // tets_per_instance, wp.determinant(wp.identity(n=3, dtype=float) + ds * inv_rest[t]))
 
 
 def simulate_softtissue(body, clip, betas=None, params: FleshParams | None = None, *, mesh=None, device=None,
@@ -180,56 +181,89 @@ def simulate_softtissue(body, clip, betas=None, params: FleshParams | None = Non
     floating free sets, the PCG iterations (largest), and ``min_det``, the smallest
     det(I + grad u) over every tetrahedron and frame (> 0: none inverted).
     """
-    from dataclasses import asdict
-
     from simgen import body as body_pkg
     from simgen.body.model import BodyModel
     from simgen.motion.clip import MotionClip
     from simgen.motion.library import load_motion
+
+    body = body if isinstance(body, BodyModel) else body_pkg.load(body)
+    clip = clip if isinstance(clip, MotionClip) else load_motion(clip)
+    b = body.check_betas(np.zeros((1, body.num_betas)) if betas is None else np.atleast_2d(betas))
+    names = list(subjects) if subjects is not None else [f"shape{k}" for k in range(len(b))]
+    return simulate_softtissue_jobs(body, [(clip, b[k], names[k]) for k in range(len(b))], params, mesh=mesh,
+                                    device=device, progress=progress)
+
+
+def simulate_softtissue_jobs(body, jobs, params: FleshParams | None = None, *, mesh=None, device=None,
+                             progress=None) -> list:
+    """One batched simulation of several (clip, betas (B',), subject) jobs, clips and shapes mixed (the
+    dataset generator's unit); one :class:`SoftTissueResult` per job, in order, as
+    :func:`simulate_softtissue` gives them. A clip shorter than the longest holds its last pose
+    until the batch ends; only its own frames are returned."""
+    from dataclasses import asdict
+
     from simgen.motion.ops import resample
     from simgen.softtissue.mesh import FleshMesh, flesh_mesh
 
     p = params if params is not None else FleshParams()
-    body = body if isinstance(body, BodyModel) else body_pkg.load(body)
-    clip = clip if isinstance(clip, MotionClip) else load_motion(clip)
     if mesh is None or not isinstance(mesh, FleshMesh):
         mesh = flesh_mesh(body, mesh)
-    b = body.check_betas(np.zeros((1, body.num_betas)) if betas is None else np.atleast_2d(betas))
-    N = len(b)
-    names = list(subjects) if subjects is not None else [f"shape{k}" for k in range(N)]
+    b = body.check_betas(np.stack([np.asarray(j[1], dtype=np.float64).reshape(-1) for j in jobs]))
+    N = len(jobs)
     model = FleshModel.for_body(mesh, body, b, p, device=device)
     solver = FleshSolver(model)
-    A, dd, fine = skeleton_tracks(body, clip, b, p)
+    A, dd, steps = _batched_tracks(body, [j[0] for j in jobs], b, p)
     dev = model.device
     As = wp.array(A.reshape(-1, 4, 4).astype(np.float32), dtype=wp.mat44, device=dev)
     dds = wp.array(dd.reshape(-1, 4, 4).astype(np.float32), dtype=wp.mat44, device=dev)
     weights = wp.array(np.tile(mesh.weights.astype(np.float32), (N, 1)).reshape(-1), device=dev)
     f = wp.zeros(model.total_nodes, dtype=wp.vec3, device=dev)
     every = int(round(p.rate / p.fps))
-    out_clip = resample(clip, p.fps)
-    frames = min(out_clip.num_frames, (len(A) - 1) // every + 1)
+    out_clips = [resample(j[0], p.fps) for j in jobs]
+    counts = [min(c.num_frames, (S - 1) // every + 1) for c, S in zip(out_clips, steps)]
+    frames = max(counts)
     h = 1.0 / p.rate
+    min_det = wp.full(N, 1e30, dtype=wp.float32, device=dev)
+
+    def record(u_dev) -> np.ndarray:
+        wp.launch(_tet_min_det, dim=model.num_tets_total, device=dev,
+                  inputs=[u_dev, model.tets, model.inv_rest, mesh.num_tets], outputs=[min_det])
+        return mesh.skin(u_dev.numpy().reshape(N, -1, 3)).astype(np.float32)
+
     solver.static(rig_forces(model, weights, As, dds, 0, f))
-    deltas, min_det, cg = [], np.full(N, np.inf), 0
+    deltas, cg = [], 0
     for k in range(frames):
         if k > 0:
             for s in range((k - 1) * every + 1, k * every + 1):
                 solver.step(rig_forces(model, weights, As, dds, s, f), h)
                 cg = max(cg, solver.cg_iterations)
-        u = solver.u.numpy().reshape(N, -1, 3).astype(np.float64)
-        min_det = np.minimum(min_det, _min_det(model, u))
-        deltas.append(mesh.skin(u).astype(np.float32))
+        deltas.append(record(solver.u))
         if progress is not None:
             progress(k + 1, frames)
     disp = np.stack(deltas, axis=1)                                                         # (N, T, V, 3)
-    poses = out_clip.poses[:frames].reshape(frames, -1)
+    dets = min_det.numpy()
     out = []
-    for k in range(N):
+    for k, (clip, _, name) in enumerate(jobs):
+        T = counts[k]
         meta = {"source": "simgen.softtissue simulation", "params": asdict(p), "layer_m": model.layer[k],
                 "extra_pins": int(model.extra_pins[k]), "cg_iterations_max": int(cg),
-                "cg_capped": int(solver.cg_capped), "min_det": float(min_det[k]),
+                "cg_capped": int(solver.cg_capped), "min_det": float(dets[k]),
                 "mesh": {"nodes": mesh.num_nodes, "tets": mesh.num_tets, "pinned": int(model.pinned[k].sum())}}
-        out.append(SoftTissueResult(name=f"{names[k]}_{clip.name}", subject=names[k], motion=clip.name,
-                                      betas=b[k], poses=poses, trans=out_clip.trans[:frames], fps=p.fps,
-                                      displacements=disp[k], meta=meta))
+        out.append(SoftTissueResult(name=f"{name}_{clip.name}", subject=name, motion=clip.name, betas=b[k],
+                                    poses=out_clips[k].poses[:T].reshape(T, -1), trans=out_clips[k].trans[:T],
+                                    fps=p.fps, displacements=disp[k, :T], meta=meta))
     return out
+
+
+def _batched_tracks(body, clips: list, betas: np.ndarray, params: FleshParams) -> tuple[np.ndarray, np.ndarray, list]:
+    """:func:`skeleton_tracks` of each (clip, shape) job side by side, (S, N, 24, 4, 4) each, and each
+    job's own steps: a clip of fewer steps than the longest holds its last transforms (zero
+    acceleration) to the end."""
+    tracks = [skeleton_tracks(body, clip, b[None], params)[:2] for clip, b in zip(clips, betas)]
+    S = max(len(a) for a, _ in tracks)
+    A = np.empty((S, len(clips), 24, 4, 4))
+    dd = np.zeros_like(A)
+    for k, (a, d) in enumerate(tracks):
+        A[:len(a), k], A[len(a):, k] = a[:, 0], a[-1, 0]
+        dd[:len(d), k] = d[:, 0]
+    return A, dd, [len(a) for a, _ in tracks]
