@@ -1186,6 +1186,9 @@ def train_softtissue_cmd(
                                              rich_help_panel=EXPERT),
     no_motion_transfer: bool = typer.Option(False, "--no-motion-transfer", help="Train the regressor on one shape "
                                             "per clip (Fig. 3.7 ablation).", rich_help_panel=EXPERT),
+    stage_budget: Optional[float] = typer.Option(None, "--stage-budget", help="Seconds per stage: a stage ends at "
+                                                 "the epoch under way after this long (logged; not reopened).",
+                                                 rich_help_panel=EXPERT),
 ) -> None:
     """Train SoftSMPL (thesis ch. 3): pose AE, soft-tissue AE, GRU regressor; resumes a run found in --out."""
     from simgen.learn.softtissue._cli import run_train_softtissue
@@ -1194,7 +1197,7 @@ def train_softtissue_cmd(
                          max_frames=max_frames, test_motions=test_motions, test_subjects=test_subjects,
                          pose_epochs=pose_epochs, ae_epochs=ae_epochs, reg_epochs=reg_epochs, ae_latent=ae_latent,
                          seed=seed, pose_input=pose_input, motion_transfer=False if no_motion_transfer else None,
-                         base=base, echo=typer.echo, progress_factory=_progress)
+                         base=base, stage_budget=stage_budget, echo=typer.echo, progress_factory=_progress)
 
 
 @eval_app.command("compare")

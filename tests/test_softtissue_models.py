@@ -249,6 +249,23 @@ def test_train_save_load_predict(body, data, tmp_path):
         train_softtissue(data, tmp_path, body=body, config=_tiny_config(ae_latent=4))
 
 
+def test_a_stage_budget_ends_each_stage_at_its_epoch_and_a_rerun_keeps_it(body, data, tmp_path):
+    from simgen.learn.checkpoint import read_config
+    from simgen.learn.softtissue.train import load_softtissue_model, train_softtissue
+
+    config = _tiny_config(pose_epochs=50, ae_epochs=50, reg_epochs=50)
+    r = train_softtissue(data, tmp_path, body=body, config=config, stage_budget=1e-9)
+    assert r.stage == "done" and r.stopped == "epochs"
+    log = tmp_path / "softtissue" / "log.csv"
+    rows = [(x["stage"], x["epoch"]) for x in csv.DictReader(open(log))]
+    assert rows == [("pose_ae", "1"), ("soft_ae", "1"), ("regressor", "1")]
+    training = read_config(tmp_path / "softtissue" / "soft_ae")["training"]
+    assert training["epochs"] == 1 and training["closed_at_budget"] is True
+    load_softtissue_model(tmp_path)
+    train_softtissue(data, tmp_path, body=body, config=config)      # the rerun does not reopen the stages
+    assert len(list(csv.DictReader(open(log)))) == 3
+
+
 def test_cli_trains_and_resumes(body, tmp_path):
     from typer.testing import CliRunner
 

@@ -47,12 +47,14 @@ def run_train_softtissue(*, data: str, body: str | None, out: Path, device: str,
                          restart: bool, max_frames: int | None, test_motions: str | None, test_subjects: str | None,
                          pose_epochs: int | None, ae_epochs: int | None, reg_epochs: int | None,
                          ae_latent: int | None, seed: int | None, pose_input: str | None = None,
-                         motion_transfer: bool | None = None, base: str | None = None, echo,
+                         motion_transfer: bool | None = None, base: str | None = None,
+                         stage_budget: float | None = None, echo,
                          progress_factory) -> None:
     from simgen.learn.softtissue.train import SoftTissueConfig, train_softtissue
 
-    if time_budget is not None and not time_budget > 0:
-        raise InputError(f"--time-budget must be positive seconds, got {time_budget}")
+    for flag, v in (("--time-budget", time_budget), ("--stage-budget", stage_budget)):
+        if v is not None and not v > 0:
+            raise InputError(f"{flag} must be positive seconds, got {v}")
     if max_frames is not None and max_frames < 1:
         raise InputError(f"--max-frames must be at least 1, got {max_frames}")
     progress, update = progress_factory(f"reading {data}", 1)
@@ -71,7 +73,7 @@ def run_train_softtissue(*, data: str, body: str | None, out: Path, device: str,
     progress, update = progress_factory("training SoftSMPL", max(total, 1))
     with progress:
         result = train_softtissue(dataset, out, body=model_body, config=config, device=device,
-                                  time_budget=time_budget, resume=not restart,
+                                  time_budget=time_budget, stage_budget=stage_budget, resume=not restart,
                                   progress=lambda done, total, info: update(int(done), total))
     losses = ", ".join(f"{k} {v:.4g}" for k, v in result.losses.items() if v is not None)
     echo(f"SoftSMPL: reached {result.stage}, stopped: {result.stopped}; last training losses: {losses or '-'}")

@@ -100,8 +100,12 @@ def _training(model) -> dict:
     """How the model's regressor was trained: epochs, pose input, motion transfer, base folder."""
     from simgen.learn.checkpoint import read_config
 
-    c = read_config(model.folder / "regressor").get("training", {}).get("config", {})
-    return {"reg_epochs": int(c.get("reg_epochs", 1)), "ae_epochs": c.get("ae_epochs"),
+    training = read_config(model.folder / "regressor").get("training", {})
+    c = training.get("config", {})
+    soft = read_config(model.folder / "soft_ae").get("training", {})
+    epochs = training.get("epochs")
+    return {"reg_epochs": int(c.get("reg_epochs", 1) if epochs is None else epochs),
+            "ae_epochs": soft.get("epochs", c.get("ae_epochs")),
             "pose_input": model.regressor.pose_input, "motion_transfer": bool(c.get("motion_transfer", True)),
             "base": c.get("base", "")}
 

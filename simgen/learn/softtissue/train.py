@@ -202,8 +202,6 @@ class _Run:
                 config.reg_hidden, config.reg_layers, config.pose_input).to(dev)}
         if config.base:
             self._take_base(config)
-        else:
-            self.nets["soft_ae"].init_pca(pca_frames([s.displacements for s in self.train.sequences]))
 
         def frames(d: SoftTissueData):
             if not d.sequences:
@@ -325,7 +323,7 @@ def _reopen(prog: dict, config: SoftTissueConfig, folder: Path) -> None:
         return
     for i, stage in enumerate(STAGES[:prog["stage"]]):
         done = prog["done"].get(stage, 0)
-        if config.epochs(stage) > done:
+        if config.epochs(stage) > done and stage not in prog.get("closed", []):
             if i < len(STAGES) - 1:
                 raise InputError(f"{folder} has finished its {stage} stage at {done} epochs and trained the later "
                                  f"stages on it; pass --restart to train it for {config.epochs(stage)}")
@@ -341,13 +339,16 @@ def _save_state(folder: Path, run: _Run, optimizer, settings: dict, prog: dict) 
 
 
 def train_softtissue(data: SoftTissueData, out: str | Path, *, body, config: SoftTissueConfig | None = None,
-                     device: str = "cpu", time_budget: float | None = None, resume: bool = True, progress=None,
+                     device: str = "cpu", time_budget: float | None = None, stage_budget: float | None = None,
+                     resume: bool = True, progress=None,
                      checkpoint_every: float = 120.0) -> SoftTissueResult:
     """Train the three SoftSMPL stages on ``data`` into OUT/softtissue/ (module docstring).
 
     body: the :class:`~simgen.body.BodyModel` of the data (its hash must match ``data.body``);
     config: :class:`SoftTissueConfig`; device: "cpu", "cuda", "cuda:N"; time_budget [s]: stop at the
-    first optimiser step after this long, everything saved; resume: continue from train_state.pt
+    first optimiser step after this long, everything saved; stage_budget [s]: a stage that has trained
+    this long in this call ends at the epoch under way (its epochs reached are logged, and a rerun
+    does not reopen it); the next stage starts; resume: continue from train_state.pt
     (more epochs continue a run; other settings are refused); False starts over; progress(done,
     total, info) after every step, done/total in epochs summed over the stages; checkpoint_every [s].
     """
@@ -370,6 +371,8 @@ def train_softtissue(data: SoftTissueData, out: str | Path, *, body, config: Sof
             net.load_state_dict(state["models"][k])
         prog, opt_state = json.loads(state["progress"]), state["optimizer"]
         _reopen(prog, config, folder)
+    elif not config.base:
+        run.nets["soft_ae"].init_pca(pca_frames([s.displacements for s in run.train.sequences]))
     split = {"test_motions": config.held_out()[0], "test_subjects": config.held_out()[1],
              "train": [s.name for s in run.train.sequences],
              "test": {k: [s.name for s in g.sequences] for k, g in run.test.items()}}
@@ -385,7 +388,8 @@ def train_softtissue(data: SoftTissueData, out: str | Path, *, body, config: Sof
         for k in STAGES[:final_stage]:
             save_model(run.nets[k], folder / k, identity=run.identity, training={
                 "method": "SoftSMPL", "stage": k, "source": data.source, "split": split, "config": asdict(config),
-                "fps": run.train.sequences[0].fps, "loss": prog["losses"].get(k)})
+                "fps": run.train.sequences[0].fps, "loss": prog["losses"].get(k), "epochs": prog["done"].get(k),
+                "closed_at_budget": k in prog.get("closed", [])})
 
     try:
         while prog["stage"] < len(STAGES):
@@ -402,6 +406,7 @@ def train_softtissue(data: SoftTissueData, out: str | Path, *, body, config: Sof
             n = run.n_items(stage)
             batches = (n + batch - 1) // batch
             done_before = sum(config.epochs(s) for s in STAGES[:prog["stage"]])
+            stage_t0 = time.monotonic()
             while prog["epoch"] < config.epochs(stage):
                 gen = torch.Generator().manual_seed(config.seed * 1_000_003 + prog["stage"] * 10_007 + prog["epoch"])
                 perm = torch.randperm(n, generator=gen)
@@ -443,6 +448,10 @@ def train_softtissue(data: SoftTissueData, out: str | Path, *, body, config: Sof
                              "val_loss": "" if val is None else val, "seconds": round(time.monotonic() - t0, 3)})
                     prog.update(step=0, sums={}, count=0)
                 if stopped == "time budget":
+                    break
+                if stage_budget is not None and time.monotonic() - stage_t0 >= stage_budget \
+                        and prog["epoch"] < config.epochs(stage):
+                    prog.setdefault("closed", []).append(stage)
                     break
             if stopped == "time budget":
                 break
