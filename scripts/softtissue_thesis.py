@@ -4,8 +4,8 @@ evaluation -- each phase within a time budget, every run resumable.
 
     python scripts/softtissue_thesis.py --data st-store --work st-runs --out st-report --device cuda
 
-Phases (runs of one phase go in parallel, as `simgen train softtissue` processes; a rerun with the
-same --work resumes each run where it stopped and skips finished ones):
+Phases (each run a `simgen train softtissue` process, the regressors several at once; a rerun with
+the same --work resumes each run where it stopped and skips finished ones):
 
 1. autoencoders: the pose AE and the soft-tissue AE at each ``--ae-sizes`` (100, 50, 25), the
    store's held-out motions held out, each stage for at most ``--ae-budget`` seconds (`simgen
@@ -103,7 +103,9 @@ def main(argv=None) -> int:
     p.add_argument("--ae-sizes", type=int, nargs="+", default=[100, 50, 25])
     p.add_argument("--ae-budget", type=float, default=420.0, help="seconds per autoencoder stage")
     p.add_argument("--reg-budget", type=float, default=240.0, help="seconds per regressor")
-    p.add_argument("--jobs", type=int, default=8, help="training processes at once")
+    p.add_argument("--ae-jobs", type=int, default=1, help="autoencoder runs at once (one GPU: 1; three side by "
+                   "side on an H100 each ran 3x slower and started far slower)")
+    p.add_argument("--reg-jobs", type=int, default=4, help="regressor runs at once")
     p.add_argument("--phases", default="ae,reg,eval", help="which phases to run, comma-separated")
     p.add_argument("--timing-frames", type=int, default=240)
     p.add_argument("--plot-only", action="store_true", help="only draw --out's plots from its JSON (for a GPU "
@@ -132,14 +134,14 @@ def main(argv=None) -> int:
 
     if "ae" in phases:
         names = {f"ae{k}": ["--ae-latent", str(k), "--reg-epochs", "0"] for k in sizes}
-        summary["autoencoders"] = _phase(names, common, work, a.ae_budget, a.jobs)
+        summary["autoencoders"] = _phase(names, common, work, a.ae_budget, a.ae_jobs)
         summary_path.write_text(json.dumps(summary, indent=1) + "\n")
 
     test_motions = json.loads((base / "softtissue" / "split.json").read_text())["test_motions"]
     if "reg" in phases:
         runs = {**REGRESSOR_VARIANTS, **{f"lomo_{m}": ["--test-motions", m] for m in test_motions}}
         runs = {n: ["--base", str(base), *x] for n, x in runs.items()}
-        summary["regressors"] = _phase(runs, common, work, a.reg_budget, a.jobs)
+        summary["regressors"] = _phase(runs, common, work, a.reg_budget, a.reg_jobs)
         summary_path.write_text(json.dumps(summary, indent=1) + "\n")
 
     if "eval" in phases:

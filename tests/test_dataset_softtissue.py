@@ -222,7 +222,7 @@ def test_the_thesis_script_trains_ablations_and_folds_and_reports(store, tmp_pat
     root = Path(__file__).resolve().parents[1]
     cmd = [sys.executable, str(root / "scripts" / "softtissue_thesis.py"), "--data", str(store["root"] / "clean"),
            "--work", str(tmp_path / "work"), "--out", str(tmp_path / "out"), "--device", "cpu", "--ae-sizes", "8",
-           "--ae-budget", "2", "--reg-budget", "2", "--jobs", "2", "--timing-frames", "2"]
+           "--ae-budget", "2", "--reg-budget", "2", "--reg-jobs", "2", "--timing-frames", "2"]
     run = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
     assert run.returncode == 0, run.stdout[-2000:] + run.stderr[-2000:]
     s = json.loads((tmp_path / "out" / "summary.json").read_text())
