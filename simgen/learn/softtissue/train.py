@@ -211,7 +211,8 @@ class _Run:
 
         # Every frame on the device for the autoencoder stages (a run on a base trains neither).
         self.frames = None if config.base else frames(self.train)
-        self.test_frames = frames(_merge(self.test, data)) if self.test and not config.base else None
+        self.test_all = _merge(self.test, data) if self.test else None   # one object: the cache keys on it
+        self.test_frames = frames(self.test_all) if self.test and not config.base else None
         self._seq_cache: dict = {}
 
     def _take_base(self, config: SoftTissueConfig) -> None:
@@ -239,35 +240,38 @@ class _Run:
         if stage == "soft_ae":
             d = disp[idx]
             return reconstruction_loss(d, self.nets["soft_ae"](d), self.template, self.faces, config.lambda_norm)
-        gamma, betas, target, mask = self.sequences(_merge(self.test, self.data) if test else self.train, idx)
+        gamma, betas, target, mask = self.sequences(self.test_all if test else self.train, idx)
         return regression_loss(self.nets["regressor"](gamma, betas), target, mask)
 
     @torch.no_grad()
     def sequences(self, d: SoftTissueData, idx):
-        """Padded (gamma (N, T, F), betas (N, B), target codes (N, T, K), mask (N, T)) of sequences idx."""
-        key = (id(d), tuple(int(i) for i in idx))
-        if key in self._seq_cache:
-            return self._seq_cache[key]
-        pose_ae, soft_ae = self.nets["pose_ae"].eval(), self.nets["soft_ae"].eval()
-        seqs = [d.sequences[int(i)] for i in idx]
-        Tm = max(s.num_frames for s in seqs)
-        F, K, B = self.nets["regressor"].num_features, soft_ae.latent, self.data.num_betas
-        gamma = torch.zeros(len(seqs), Tm, F, device=self.dev)
-        target = torch.zeros(len(seqs), Tm, K, device=self.dev)
-        mask = torch.zeros(len(seqs), Tm, dtype=torch.bool, device=self.dev)
-        betas = torch.zeros(len(seqs), B, device=self.dev)
-        for k, s in enumerate(seqs):
+        """Padded (gamma (N, T, F), betas (N, B), target codes (N, T, K), mask (N, T)) of sequences idx.
+        Each sequence is encoded once (the encoders are frozen by the regressor stage)."""
+        enc = [self._encoded(d, int(i)) for i in idx]
+        Tm = max(len(g) for g, _, _ in enc)
+        F, K, B = enc[0][0].shape[1], enc[0][1].shape[1], self.data.num_betas
+        gamma = torch.zeros(len(enc), Tm, F, device=self.dev)
+        target = torch.zeros(len(enc), Tm, K, device=self.dev)
+        mask = torch.zeros(len(enc), Tm, dtype=torch.bool, device=self.dev)
+        betas = torch.zeros(len(enc), B, device=self.dev)
+        for k, (g, c, b) in enumerate(enc):
+            gamma[k, :len(g)], target[k, :len(g)], mask[k, :len(g)] = g, c, True
+            betas[k, :len(b)] = b
+        return gamma, betas, target, mask
+
+    @torch.no_grad()
+    def _encoded(self, d: SoftTissueData, i: int):
+        """(gamma (T, F), codes (T, K), betas) of sequence i of d, cached."""
+        key = (id(d), i)
+        if key not in self._seq_cache:
+            pose_ae, soft_ae = self.nets["pose_ae"].eval(), self.nets["soft_ae"].eval()
+            s = d.sequences[i]
             p = torch.as_tensor(s.poses, device=self.dev)
             t = torch.as_tensor(s.trans, device=self.dev)
-            n = s.num_frames
-            gamma[k, :n] = motion_descriptor(pose_features(pose_ae, self.nets["regressor"].pose_input, p), p, t,
-                                             s.fps)
-            target[k, :n] = soft_ae.encode(torch.as_tensor(s.displacements, device=self.dev))
-            mask[k, :n] = True
-            betas[k, :len(s.betas)] = torch.as_tensor(s.betas, device=self.dev)
-        out = (gamma, betas, target, mask)
-        self._seq_cache[key] = out
-        return out
+            gamma = motion_descriptor(pose_features(pose_ae, self.nets["regressor"].pose_input, p), p, t, s.fps)
+            codes = soft_ae.encode(torch.as_tensor(s.displacements, device=self.dev))
+            self._seq_cache[key] = (gamma, codes, torch.as_tensor(s.betas, device=self.dev))
+        return self._seq_cache[key]
 
     def prepare_regressor(self) -> None:
         """Standardise the regressor's inputs with the training sequences (frozen encoders)."""
@@ -280,7 +284,7 @@ class _Run:
             return None
         self.nets[stage].eval()
         if stage == "regressor":
-            n = len(_merge(self.test, self.data).sequences)
+            n = len(self.test_all.sequences)
             return float(self.loss(stage, list(range(n)), config, test=True)["total"])
         n = len(self.test_frames[0])
         total = 0.0
@@ -383,6 +387,14 @@ def train_softtissue(data: SoftTissueData, out: str | Path, *, body, config: Sof
     steps, stopped = 0, "epochs"
     optimizer = opt_state  # a state dict until a stage runs (a resumed, finished run saves it back)
 
+    acc: dict = {}   # loss sums of the epoch under way, on the device
+
+    def fold() -> None:
+        """Move the device sums into prog (one host read)."""
+        for k, v in acc.items():
+            prog["sums"][k] = prog["sums"].get(k, 0.0) + float(v)
+        acc.clear()
+
     def save(final_stage: int) -> None:
         _save_state(folder, run, optimizer, settings, prog)
         for k in STAGES[:final_stage]:
@@ -424,20 +436,21 @@ def train_softtissue(data: SoftTissueData, out: str | Path, *, body, config: Sof
                     optimizer.zero_grad(set_to_none=True)
                     terms["total"].backward()
                     optimizer.step()
-                    for k, v in terms.items():
-                        prog["sums"][k] = prog["sums"].get(k, 0.0) + float(v.detach()) * len(idx)
+                    for k, v in terms.items():   # summed on the device: no host sync per step
+                        acc[k] = acc.get(k, 0.0) + v.detach() * len(idx)
                     prog["count"] += len(idx)
                     prog["step"] += 1
                     steps += 1
                     if progress is not None:
-                        progress(done_before + prog["epoch"] + prog["step"] / batches, total_epochs,
-                                 {"stage": stage, "loss": float(terms["total"].detach())})
+                        progress(done_before + prog["epoch"] + prog["step"] / batches, total_epochs, {"stage": stage})
                     if time_budget is not None and time.monotonic() - t0 >= time_budget:
                         stopped = "time budget"
                         break
                     if time.monotonic() - last_save >= checkpoint_every:
+                        fold()
                         save(prog["stage"])
                         last_save = time.monotonic()
+                fold()
                 if prog["step"] >= batches:
                     means = {k: v / max(prog["count"], 1) for k, v in prog["sums"].items()}
                     val = run.val_loss(stage, config)
