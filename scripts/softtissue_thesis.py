@@ -137,6 +137,9 @@ def main(argv=None) -> int:
         summary["autoencoders"] = _phase(names, common, work, a.ae_budget, a.ae_jobs)
         summary_path.write_text(json.dumps(summary, indent=1) + "\n")
 
+    if not _finished(base):
+        _log(f"{base} has not finished its autoencoders (run the 'ae' phase first): nothing more to do")
+        return 1
     test_motions = json.loads((base / "softtissue" / "split.json").read_text())["test_motions"]
     if "reg" in phases:
         runs = {**REGRESSOR_VARIANTS, **{f"lomo_{m}": ["--test-motions", m] for m in test_motions}}
@@ -164,12 +167,21 @@ def _evaluate(a, work: Path, out: Path, sizes: list[int], test_motions: list[str
     t0 = time.monotonic()
     data, body = load_softtissue_source(str(a.data), None)
     _log(f"read the store in {time.monotonic() - t0:.0f} s")
-    main_models = [work / n for n in REGRESSOR_VARIANTS] + [work / f"ae{k}" for k in sizes[1:]]
+    candidates = [work / n for n in REGRESSOR_VARIANTS] + [work / f"ae{k}" for k in sizes[1:]]
+    main_models = [m for m in candidates if _finished(m)]
+    left_out = [m.name for m in candidates if not _finished(m)]
+    if left_out:
+        _log(f"not evaluated (not finished): {', '.join(left_out)}")
+    if not (work / "full") in main_models:
+        raise SystemExit("the 'full' regressor has not finished: run the 'reg' phase first")
     rep = evaluate_softtissue(main_models, data, out / "main", body=body, device=a.device,
                               timing_frames=a.timing_frames)
     full = {r["sequence"]: r for r in rep["models"][0]["sequences"]}
     lomo = []
     for m in test_motions:
+        if not _finished(work / f"lomo_{m}"):
+            left_out.append(f"lomo_{m}")
+            continue
         fold = evaluate_softtissue([work / f"lomo_{m}"], data, out / f"lomo_{m}", body=body, device=a.device,
                                    timing_frames=10)
         rows = [r for r in fold["models"][0]["sequences"] if r["group"] == "held_out_motion"]
@@ -178,7 +190,7 @@ def _evaluate(a, work: Path, out: Path, sizes: list[int], test_motions: list[str
                      "main_split_error_mm": float(sum(full[r["sequence"]]["error_mm"] for r in rows) / len(rows)),
                      "no_soft_tissue_mm": float(sum(r["no_soft_tissue_mm"] for r in rows) / len(rows))})
         _log(f"lomo {m}: {lomo[-1]}")
-    return {"seconds": round(time.monotonic() - t0, 1), "main": {
+    return {"seconds": round(time.monotonic() - t0, 1), "not_evaluated": left_out, "main": {
         "pca_mm": rep["pca_mm"], "held_out": rep["held_out"], "train_frames": rep["train_frames"],
         "models": [{k: v for k, v in m.items() if k != "sequences"} |
                    {"error_mm": (sum(s["error_mm"] for s in m["sequences"]) / len(m["sequences"])

@@ -401,28 +401,33 @@ def _run(spec, store, body, mesh, report, max_sequences, time_budget, t0, progre
             clips[(m, r)] = replace(c, name=m + ("_mirror" if r else ""))
         return clips[(m, r)]
 
-    done, per_frame_s, pending = 0, None, None   # per_frame_s: [s] wall per stored frame so far
+    # A batch costs about the same however many jobs it holds (its steps are launch-bound): the
+    # budget test takes the last batch's wall per stored frame of its longest clip.
+    done, per_frame_s, pending = 0, None, None
     with ThreadPoolExecutor(1) as writer:
-        for group in groups:
-            frames = sum(int(np.floor(clip(m, r).duration * spec.flesh.fps + 1e-9)) + 1 for m, r, _ in group)
-            if time_budget is not None and per_frame_s is not None and \
-                    time.perf_counter() - t0 + per_frame_s * frames > time_budget:
-                report.stopped = f"time budget of {time_budget:g} s reached"
-                break
-            t = time.perf_counter()
-            jobs = [(clip(m, r), _betas(spec, body, [sid])[0], sid) for m, r, sid in group]
-            results = simulate_softtissue_jobs(body, jobs, spec.flesh, mesh=mesh, device=device)
-            report.simulate_wall += time.perf_counter() - t
+        try:
+            for group in groups:
+                longest = max(int(np.floor(clip(m, r).duration * spec.flesh.fps + 1e-9)) + 1 for m, r, _ in group)
+                if time_budget is not None and per_frame_s is not None and \
+                        time.perf_counter() - t0 + per_frame_s * longest > time_budget:
+                    report.stopped = f"time budget of {time_budget:g} s reached"
+                    break
+                t = time.perf_counter()
+                jobs = [(clip(m, r), _betas(spec, body, [sid])[0], sid) for m, r, sid in group]
+                results = simulate_softtissue_jobs(body, jobs, spec.flesh, mesh=mesh, device=device)
+                wall = time.perf_counter() - t
+                report.simulate_wall += wall
+                per_frame_s = wall / longest
+                if pending is not None:
+                    done += _record(store, report, pending.result())
+                pending = writer.submit(_write_group, spec, store, group, results)
+                if progress is not None:
+                    progress(done, len(todo))
+        finally:   # what was written is entered in the manifest, also when a simulation raised
             if pending is not None:
                 done += _record(store, report, pending.result())
-            pending = writer.submit(_write_group, spec, store, group, results)
-            per_frame_s = (time.perf_counter() - t0) / max(report.frames + frames, 1)
-            if progress is not None:
-                progress(done, len(todo))
-        if pending is not None:
-            done += _record(store, report, pending.result())
-            if progress is not None:
-                progress(done, len(todo))
+                if progress is not None:
+                    progress(done, len(todo))
 
 
 def _write_group(spec, store, group, results) -> list:

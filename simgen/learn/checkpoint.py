@@ -14,6 +14,7 @@ model trained for a different garment or body with one sentence naming both.
 
 from __future__ import annotations
 
+import inspect
 import io
 import json
 from pathlib import Path
@@ -123,7 +124,16 @@ def load_model(folder: str | Path, *, identity: dict | None = None, kind: str | 
     if cls is None:
         raise InputError(f"model {folder} has unknown kind {config['kind']!r}")
     args = dict(config["model"])
-    positional = [args.pop(name) for name in list(cls.__init__.__code__.co_varnames[1:cls.__init__.__code__.co_argcount])]
+    positional = []
+    for prm in list(inspect.signature(cls.__init__).parameters.values())[1:]:
+        if prm.kind not in (prm.POSITIONAL_ONLY, prm.POSITIONAL_OR_KEYWORD):
+            continue
+        if prm.name in args:
+            positional.append(args.pop(prm.name))
+        elif prm.default is not prm.empty:     # a setting added since the model was saved
+            positional.append(prm.default)
+        else:
+            raise InputError(f"model {folder}: its config.json lacks the model setting {prm.name!r}")
     try:
         model = cls(*positional, **args)
         state = torch.load(folder / MODEL_FILE, map_location="cpu", weights_only=True)

@@ -161,12 +161,19 @@ def rig_forces(model: FleshModel, weights: wp.array, A: wp.array, dd: wp.array, 
 @wp.kernel
 def _tet_min_det(u: wp.array(dtype=wp.vec3), tets: wp.array(dtype=wp.vec4i), inv_rest: wp.array(dtype=wp.mat33),
                  tets_per_instance: int, out: wp.array(dtype=wp.float32)):
-    """out[instance] = min(out[instance], det(I + grad u)) of each tetrahedron (> 0: not inverted)."""
+    """out[instance] = min(out[instance], det(I + grad u)) of each tetrahedron (> 0: not inverted; a
+    non-finite u gives -1e30)."""
     t = wp.tid()
     k = tets[t]
     u0 = u[k[0]]
-    ds = wp.matrix_from_cols(u[k[1]] - u0, u[k[2]] - u0, u[k[3]] - u0)
-    wp.atomic_min(out, t // tets_per_instance, wp.determinant(wp.identity(n=3, dtype=float) + ds * inv_rest[t]))
+    a = u[k[1]] - u0
+    b = u[k[2]] - u0
+    c = u[k[3]] - u0
+    ds = wp.mat33(a[0], b[0], c[0], a[1], b[1], c[1], a[2], b[2], c[2])     # columns: the edge vectors
+    d = wp.determinant(wp.identity(n=3, dtype=float) + ds * inv_rest[t])
+    if not wp.isfinite(d):
+        d = -1.0e30
+    wp.atomic_min(out, t // tets_per_instance, d)
 
 
 def simulate_softtissue(body, clip, betas=None, params: FleshParams | None = None, *, mesh=None, device=None,
@@ -199,7 +206,8 @@ def simulate_softtissue_jobs(body, jobs, params: FleshParams | None = None, *, m
     """One batched simulation of several (clip, betas (B',), subject) jobs, clips and shapes mixed (the
     dataset generator's unit); one :class:`SoftTissueResult` per job, in order, as
     :func:`simulate_softtissue` gives them. A clip shorter than the longest holds its last pose
-    until the batch ends; only its own frames are returned."""
+    until the batch ends; only its own frames are returned, but its ``min_det`` covers the held
+    frames too, and the PCG counts in ``meta`` are the whole batch's."""
     from dataclasses import asdict
 
     from simgen.motion.ops import resample

@@ -3,7 +3,8 @@ the recurrent soft-tissue regressor, with their losses.
 
 - :class:`SoftTissueAE` (section 3.2.2): Delta (V, 3) [m] -> code (``latent``) -> Delta. Encoder:
   a linear layer initialised with PCA of the training displacements (whitened: code_k =
-  u_k . (Delta - mean) / s_k), then ``blocks`` residual units; the decoder mirrors it and ends with
+  u_k . (Delta - mean) / s_k, s_k floored at 1e-3 of the largest; the layers see Delta in units of
+  the largest scale, buffer ``unit``), then ``blocks`` residual units; the decoder mirrors it and ends with
   the inverse PCA layer. Each residual unit is x + L2(dropout(relu(L1(x)))) with L2 initialised
   to zero, so at initialisation the autoencoder *is* PCA (at full rank it reproduces its training
   data). Loss :func:`reconstruction_loss` (eqs. 3.6-3.8).
@@ -183,6 +184,11 @@ class SoftTissueAE(nn.Module):
     def config(self) -> dict:
         return {"num_vertices": self.num_vertices, "latent": self.latent, "hidden": self.hidden,
                 "blocks": self.blocks, "dropout": self.dropout}
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
+        # Weights saved before ``unit`` existed are in metres: unit = 1 reads them exactly.
+        state_dict.setdefault(prefix + "unit", torch.ones(()))
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     @torch.no_grad()
     def init_pca(self, displacements: np.ndarray) -> None:

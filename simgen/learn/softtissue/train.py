@@ -8,7 +8,8 @@ Three stages, in order, into one model folder OUT/softtissue/:
    from PCA of the training displacements, Adam 1e-4, batch 256, dropout 0.1.
 3. ``regressor`` (:class:`~simgen.learn.softtissue.models.SoftTissueRegressor`, eq. 3.10) on whole
    training sequences (state reset per sequence), batch 10, Adam 1e-3; inputs gamma (eq. 3.11,
-   from the frozen pose encoder) and beta, targets the frozen soft-tissue encoder's codes.
+   from the frozen pose encoder, or from the raw joint rotations with ``pose_input="pose"``) and
+   beta, targets the frozen soft-tissue encoder's codes.
 
 OUT/softtissue/ holds ``pose_ae/``, ``soft_ae/``, ``regressor/`` (each model.pt + config.json,
 :mod:`simgen.learn.checkpoint`), ``log.csv`` (one row per epoch of each stage), ``split.json`` and
@@ -114,7 +115,8 @@ class SoftTissueResult:
 # ------------------------------------------------------------------------------------ the model
 class SoftSMPL(torch.nn.Module):
     """The runtime pipeline (thesis Fig. 3.2, eq. 3.9): Delta = D_soft(R(gamma, beta)) with gamma from
-    E_pose. ``predict`` plays one sequence from a zero state; ``posed`` adds Delta to the body."""
+    E_pose (or the raw joint rotations: the regressor's ``pose_input``). ``predict`` plays one
+    sequence from a zero state; ``posed`` adds Delta to the body."""
 
     def __init__(self, pose_ae: PoseAE, soft_ae: SoftTissueAE, regressor: SoftTissueRegressor, identity: dict):
         super().__init__()
@@ -221,7 +223,11 @@ class _Run:
         base = _base_folder(config.base)
         for name in ("pose_ae", "soft_ae"):
             self.nets[name] = load_model(base / name, identity=self.identity, device=self.dev)
-        seen = set(json.loads((base / "split.json").read_text())["train"])
+        split = json.loads((base / "split.json").read_text())
+        source = read_config(base / "soft_ae").get("training", {}).get("source")
+        if source is not None and source != self.data.source:
+            raise InputError(f"base {config.base} was trained on {source}, this run's data is {self.data.source}")
+        seen = set(split.get("autoencoder_train", split["train"]))
         leaked = sorted(seen & {s.name for g in self.test.values() for s in g.sequences})
         if leaked:
             raise InputError(f"base {config.base} trained on {leaked[0]!r}, which this run holds out "
@@ -323,9 +329,9 @@ def _reopen(prog: dict, config: SoftTissueConfig, folder: Path) -> None:
     """Resuming with more epochs: the regressor (the last stage) continues; an earlier, finished stage
     cannot (the later stages were trained on it), so that is refused. A run on a base trains only its
     regressor."""
-    if config.base:
-        return
     for i, stage in enumerate(STAGES[:prog["stage"]]):
+        if config.base and stage != "regressor":   # the base's, not this run's
+            continue
         done = prog["done"].get(stage, 0)
         if config.epochs(stage) > done and stage not in prog.get("closed", []):
             if i < len(STAGES) - 1:
@@ -367,8 +373,12 @@ def train_softtissue(data: SoftTissueData, out: str | Path, *, body, config: Sof
                 "sequences": [s.name for s in data.sequences]}
     state = _load_state(folder, settings, resume, dev)
     prog = {"stage": 0, "epoch": 0, "step": 0, "sums": {}, "count": 0, "losses": {}, "done": {}}
-    if config.base:   # the autoencoders come trained from the base folder
-        prog.update(stage=STAGES.index("regressor"), done={"pose_ae": config.pose_epochs, "soft_ae": config.ae_epochs})
+    if config.base:   # the autoencoders come trained from the base folder, with the epochs it gave them
+        base = _base_folder(config.base)
+        trained = {n: read_config(base / n).get("training", {}) for n in ("pose_ae", "soft_ae")}
+        prog.update(stage=STAGES.index("regressor"),
+                    done={n: t.get("epochs", config.epochs(n)) for n, t in trained.items()},
+                    closed=[n for n, t in trained.items() if t.get("closed_at_budget")])
     opt_state = None
     if state is not None:
         for k, net in run.nets.items():
@@ -377,8 +387,11 @@ def train_softtissue(data: SoftTissueData, out: str | Path, *, body, config: Sof
         _reopen(prog, config, folder)
     elif not config.base:
         run.nets["soft_ae"].init_pca(pca_frames([s.displacements for s in run.train.sequences]))
+    ae_train = ([s.name for s in run.train.sequences] if not config.base else
+                (lambda b: b.get("autoencoder_train", b["train"]))(
+                    json.loads((_base_folder(config.base) / "split.json").read_text())))
     split = {"test_motions": config.held_out()[0], "test_subjects": config.held_out()[1],
-             "train": [s.name for s in run.train.sequences],
+             "train": [s.name for s in run.train.sequences], "autoencoder_train": ae_train,
              "test": {k: [s.name for s in g.sequences] for k, g in run.test.items()}}
     atomic_write_bytes(folder / "split.json", (json.dumps(split, indent=2) + "\n").encode())
     log = _Logger(folder, _LOG_FIELDS, False)
