@@ -266,6 +266,30 @@ def test_a_stage_budget_ends_each_stage_at_its_epoch_and_a_rerun_keeps_it(body, 
     assert len(list(csv.DictReader(open(log)))) == 3
 
 
+def test_models_saved_before_new_settings_still_load(body, data, tmp_path):
+    # A regressor config without pose_input (added later) loads with its default; autoencoder weights
+    # without the 'unit' buffer load as metres (unit = 1).
+    import json
+
+    from simgen.learn.softtissue.train import load_softtissue_model, train_softtissue
+
+    train_softtissue(data, tmp_path, body=body, config=_tiny_config())
+    folder = tmp_path / "softtissue"
+    cfg_path = folder / "regressor" / "config.json"
+    cfg = json.loads(cfg_path.read_text())
+    del cfg["model"]["pose_input"]
+    cfg_path.write_text(json.dumps(cfg))
+    weights = torch.load(folder / "soft_ae" / "model.pt", weights_only=True)
+    del weights["unit"]
+    torch.save(weights, folder / "soft_ae" / "model.pt")
+    m = load_softtissue_model(tmp_path)
+    assert m.regressor.pose_input == "code" and float(m.soft_ae.unit) == 1.0
+    del cfg["model"]["latent"]                     # a setting without a default is still refused
+    cfg_path.write_text(json.dumps(cfg))
+    with pytest.raises(InputError, match="lacks the model setting .latent."):
+        load_softtissue_model(tmp_path)
+
+
 def test_cli_trains_and_resumes(body, tmp_path):
     from typer.testing import CliRunner
 

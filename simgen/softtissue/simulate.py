@@ -216,7 +216,9 @@ def simulate_softtissue_jobs(body, jobs, params: FleshParams | None = None, *, m
     p = params if params is not None else FleshParams()
     if mesh is None or not isinstance(mesh, FleshMesh):
         mesh = flesh_mesh(body, mesh)
-    b = body.check_betas(np.stack([np.asarray(j[1], dtype=np.float64).reshape(-1) for j in jobs]))
+    if not jobs:
+        raise InputError("simulate_softtissue_jobs needs at least one (clip, betas, subject) job")
+    b = np.concatenate([body.check_betas(np.atleast_2d(np.asarray(j[1], dtype=np.float64))) for j in jobs])
     N = len(jobs)
     model = FleshModel.for_body(mesh, body, b, p, device=device)
     solver = FleshSolver(model)
@@ -267,7 +269,14 @@ def _batched_tracks(body, clips: list, betas: np.ndarray, params: FleshParams) -
     """:func:`skeleton_tracks` of each (clip, shape) job side by side, (S, N, 24, 4, 4) each, and each
     job's own steps: a clip of fewer steps than the longest holds its last transforms (zero
     acceleration) to the end."""
-    tracks = [skeleton_tracks(body, clip, b[None], params)[:2] for clip, b in zip(clips, betas)]
+    by_clip: dict[int, list[int]] = {}            # one skeleton_tracks call per clip, for all its shapes
+    for k, clip in enumerate(clips):
+        by_clip.setdefault(id(clip), []).append(k)
+    tracks: list = [None] * len(clips)
+    for ks in by_clip.values():
+        a, d, _ = skeleton_tracks(body, clips[ks[0]], betas[ks], params)
+        for j, k in enumerate(ks):
+            tracks[k] = (a[:, j:j + 1], d[:, j:j + 1])
     S = max(len(a) for a, _ in tracks)
     A = np.empty((S, len(clips), 24, 4, 4))
     dd = np.zeros_like(A)

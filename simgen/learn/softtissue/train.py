@@ -223,11 +223,10 @@ class _Run:
         base = _base_folder(config.base)
         for name in ("pose_ae", "soft_ae"):
             self.nets[name] = load_model(base / name, identity=self.identity, device=self.dev)
-        split = json.loads((base / "split.json").read_text())
         source = read_config(base / "soft_ae").get("training", {}).get("source")
         if source is not None and source != self.data.source:
             raise InputError(f"base {config.base} was trained on {source}, this run's data is {self.data.source}")
-        seen = set(split.get("autoencoder_train", split["train"]))
+        seen = set(_autoencoder_train(base))
         leaked = sorted(seen & {s.name for g in self.test.values() for s in g.sequences})
         if leaked:
             raise InputError(f"base {config.base} trained on {leaked[0]!r}, which this run holds out "
@@ -310,6 +309,12 @@ def _base_folder(base: str) -> Path:
     return folder
 
 
+def _autoencoder_train(folder: Path) -> list[str]:
+    """The sequences a trained folder's autoencoders saw (its split.json; for a run on a base, the base's)."""
+    split = json.loads((folder / "split.json").read_text())
+    return split.get("autoencoder_train", split["train"])
+
+
 def _with_base_sizes(config: SoftTissueConfig) -> SoftTissueConfig:
     """A run on a base takes the base's autoencoder sizes (whatever this config says about them)."""
     if not config.base:
@@ -387,9 +392,7 @@ def train_softtissue(data: SoftTissueData, out: str | Path, *, body, config: Sof
         _reopen(prog, config, folder)
     elif not config.base:
         run.nets["soft_ae"].init_pca(pca_frames([s.displacements for s in run.train.sequences]))
-    ae_train = ([s.name for s in run.train.sequences] if not config.base else
-                (lambda b: b.get("autoencoder_train", b["train"]))(
-                    json.loads((_base_folder(config.base) / "split.json").read_text())))
+    ae_train = _autoencoder_train(_base_folder(config.base)) if config.base else [s.name for s in run.train.sequences]
     split = {"test_motions": config.held_out()[0], "test_subjects": config.held_out()[1],
              "train": [s.name for s in run.train.sequences], "autoencoder_train": ae_train,
              "test": {k: [s.name for s in g.sequences] for k, g in run.test.items()}}
