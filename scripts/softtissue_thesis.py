@@ -4,8 +4,9 @@ evaluation -- each phase within a time budget, every run resumable.
 
     python scripts/softtissue_thesis.py --data st-store --work st-runs --out st-report --device cuda
 
-Phases (each run a `simgen train softtissue` process, the regressors several at once; a rerun with
-the same --work resumes each run where it stopped and skips finished ones):
+Phases (each run a `simgen train softtissue` process, the regressors several at once, spread over
+``--gpus 0,1,...`` where a machine has several; a rerun with the same --work resumes each run where
+it stopped and skips finished ones):
 
 1. autoencoders: the pose AE and the soft-tissue AE at each ``--ae-sizes`` (100, 50, 25), the
    store's held-out motions held out, each stage for at most ``--ae-budget`` seconds (`simgen
@@ -57,38 +58,47 @@ def _finished(folder: Path) -> bool:
     return (folder / "softtissue" / "regressor" / "config.json").is_file()
 
 
-def _train_all(runs: dict, common: list[str], work: Path, budget: float, jobs: int) -> dict:
-    """Run `simgen train softtissue` for each {name: extra args} not finished yet, ``jobs`` at a time,
-    ``budget`` seconds per stage; {name: {"seconds", "returncode"}}."""
+def _train_all(runs: dict, common: list[str], work: Path, budget: float, jobs: int, gpus: list[str]) -> dict:
+    """Run `simgen train softtissue` for each {name: extra args} not finished yet, ``jobs`` at a time
+    on each of ``gpus`` (CUDA device indices; [] leaves the device alone), each on the GPU running
+    the fewest, ``budget`` seconds per stage; {name: {"seconds", "returncode", "gpu"}}."""
     todo = [(n, a) for n, a in runs.items() if not _finished(work / n)]
+    slots = gpus or [None]
+    # several processes on one machine: each gets its share of the cores (the PCA's SVD and torch's
+    # CPU ops spin all cores in every process otherwise, and side by side they starve each other)
+    threads = str(max(1, (os.cpu_count() or 1) // (jobs * len(slots))))
     done, running = {}, []
     while todo or running:
-        while todo and len(running) < jobs:
+        while todo and len(running) < jobs * len(slots):
             name, extra = todo.pop(0)
+            gpu = min(slots, key=lambda g: (sum(r[4] == g for r in running), slots.index(g)))
+            env = dict(os.environ, OMP_NUM_THREADS=threads, MKL_NUM_THREADS=threads)
+            if gpu is not None:
+                env["CUDA_VISIBLE_DEVICES"] = gpu
             cmd = [sys.executable, "-m", "simgen.cli", "train", "softtissue", *common, "--out", str(work / name),
                    "--stage-budget", str(budget), *extra]
             logf = open(work / f"{name}.log", "a")
-            running.append((name, subprocess.Popen(cmd, stdout=logf, stderr=subprocess.STDOUT), time.monotonic(),
-                            logf))
-            _log(f"started {name}")
+            running.append((name, subprocess.Popen(cmd, stdout=logf, stderr=subprocess.STDOUT, env=env),
+                            time.monotonic(), logf, gpu))
+            _log(f"started {name}" + ("" if gpu is None else f" on GPU {gpu}"))
         time.sleep(1.0)
         for item in list(running):
-            name, proc, t0, logf = item
+            name, proc, t0, logf, gpu = item
             if proc.poll() is not None:
                 logf.close()
                 running.remove(item)
-                done[name] = {"seconds": round(time.monotonic() - t0, 1), "returncode": proc.returncode}
+                done[name] = {"seconds": round(time.monotonic() - t0, 1), "returncode": proc.returncode, "gpu": gpu}
                 _log(f"{name} ended ({proc.returncode}) after {done[name]['seconds']} s: {_epochs(work / name)}")
                 if proc.returncode != 0:
                     print((work / f"{name}.log").read_text()[-3000:], file=sys.stderr)
     return done
 
 
-def _phase(runs: dict, common: list[str], work: Path, budget: float, jobs: int) -> dict:
+def _phase(runs: dict, common: list[str], work: Path, budget: float, jobs: int, gpus: list[str]) -> dict:
     """Train ``runs`` ({name: extra args}), each stage of each run for at most ``budget`` seconds (a
     stage the budget ends keeps the epochs it reached); the phase's record for summary.json."""
     t0 = time.monotonic()
-    ran = _train_all(runs, common, work, budget, jobs)
+    ran = _train_all(runs, common, work, budget, jobs, gpus)
     return {"wall_s": round(time.monotonic() - t0, 1), "stage_budget_s": budget,
             "runs": {n: {**ran.get(n, {}), "epochs": _epochs(work / n), "finished": _finished(work / n)}
                      for n in runs}}
@@ -103,9 +113,10 @@ def main(argv=None) -> int:
     p.add_argument("--ae-sizes", type=int, nargs="+", default=[100, 50, 25])
     p.add_argument("--ae-budget", type=float, default=420.0, help="seconds per autoencoder stage")
     p.add_argument("--reg-budget", type=float, default=240.0, help="seconds per regressor")
-    p.add_argument("--ae-jobs", type=int, default=1, help="autoencoder runs at once (one GPU: 1; three side by "
-                   "side on an H100 each ran 3x slower and started far slower)")
-    p.add_argument("--reg-jobs", type=int, default=4, help="regressor runs at once")
+    p.add_argument("--gpus", default="", help="CUDA device indices to spread the runs over, comma-separated "
+                   "(e.g. 0,1; each run sees one); empty: every run on --device")
+    p.add_argument("--ae-jobs", type=int, default=1, help="autoencoder runs at once per GPU")
+    p.add_argument("--reg-jobs", type=int, default=4, help="regressor runs at once per GPU")
     p.add_argument("--phases", default="ae,reg,eval", help="which phases to run, comma-separated")
     p.add_argument("--timing-frames", type=int, default=240)
     p.add_argument("--plot-only", action="store_true", help="only draw --out's plots from its JSON (for a GPU "
@@ -125,16 +136,20 @@ def main(argv=None) -> int:
     work.mkdir(parents=True, exist_ok=True)
     out.mkdir(parents=True, exist_ok=True)
     phases = set(a.phases.split(","))
+    gpus = [g.strip() for g in a.gpus.split(",") if g.strip()]
+    if gpus and not a.device.startswith("cuda"):
+        p.error(f"--gpus {a.gpus} needs --device cuda, got {a.device}")
     summary_path = out / "summary.json"
     summary = json.loads(summary_path.read_text()) if summary_path.is_file() else {}
     summary.update(data=str(a.data), device=a.device, commit=os.environ.get("SIMGEN_COMMIT", "unknown"))
-    common = ["--data", str(a.data), "--device", a.device]
+    # each run sees only its GPU as cuda:0 under --gpus
+    common = ["--data", str(a.data), "--device", "cuda" if gpus else a.device]
     sizes = sorted(set(a.ae_sizes), reverse=True)
     base = work / f"ae{sizes[0]}"
 
     if "ae" in phases:
         names = {f"ae{k}": ["--ae-latent", str(k), "--reg-epochs", "0"] for k in sizes}
-        summary["autoencoders"] = _phase(names, common, work, a.ae_budget, a.ae_jobs)
+        summary["autoencoders"] = _phase(names, common, work, a.ae_budget, a.ae_jobs, gpus)
         summary_path.write_text(json.dumps(summary, indent=1) + "\n")
 
     if not _finished(base):
@@ -144,7 +159,7 @@ def main(argv=None) -> int:
     if "reg" in phases:
         runs = {**REGRESSOR_VARIANTS, **{f"lomo_{m}": ["--test-motions", m] for m in test_motions}}
         runs = {n: ["--base", str(base), *x] for n, x in runs.items()}
-        summary["regressors"] = _phase(runs, common, work, a.reg_budget, a.reg_jobs)
+        summary["regressors"] = _phase(runs, common, work, a.reg_budget, a.reg_jobs, gpus)
         summary_path.write_text(json.dumps(summary, indent=1) + "\n")
 
     if "eval" in phases:
