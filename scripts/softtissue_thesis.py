@@ -72,7 +72,7 @@ def _train_all(runs: dict, common: list[str], work: Path, budget: float, jobs: i
         while todo and len(running) < jobs * len(slots):
             name, extra = todo.pop(0)
             gpu = min(slots, key=lambda g: (sum(r[4] == g for r in running), slots.index(g)))
-            env = dict(os.environ, OMP_NUM_THREADS=threads, MKL_NUM_THREADS=threads)
+            env = dict(os.environ, OMP_NUM_THREADS=threads, OPENBLAS_NUM_THREADS=threads, MKL_NUM_THREADS=threads)
             if gpu is not None:
                 env["CUDA_VISIBLE_DEVICES"] = gpu
             cmd = [sys.executable, "-m", "simgen.cli", "train", "softtissue", *common, "--out", str(work / name),
@@ -233,8 +233,8 @@ def _markdown(s: dict, out: Path) -> str:
                   "| motion | sequences | error mm (fold) | error mm (all held-out motions out) | no soft tissue mm |",
                   "|---|---:|---:|---:|---:|"]
         for r in ev["leave_one_motion_out"]:
-            lines.append(f"| {r['motion']} | {r['sequences']} | {r['error_mm']:.2f} | {r['main_split_error_mm']:.2f} "
-                         f"| {r['no_soft_tissue_mm']:.2f} |")
+            lines.append(f"| {r['motion']} | {r['sequences']} | {r['error_mm']:.3f} | {r['main_split_error_mm']:.3f} "
+                         f"| {r['no_soft_tissue_mm']:.3f} |")
     return "\n".join(lines) + "\n"
 
 

@@ -31,6 +31,7 @@ import numpy as np
 import torch
 
 from simgen._fileio import atomic_write_bytes
+from simgen.body.torch_lbs import axis_angle_to_matrix_torch
 from simgen.errors import InputError
 from simgen.learn.checkpoint import check_identity, load_model, read_config, save_model
 from simgen.learn.softtissue.data import SoftTissueData, one_shape_per_motion
@@ -143,6 +144,12 @@ class SoftSMPL(torch.nn.Module):
         codes = self.regressor(gamma[None], b[None])[0]
         return self.soft_ae.decode(codes)
 
+    def stream(self, betas, fps: float) -> "SoftTissueStream":
+        """A frame-by-frame player for betas (B,) at ``fps`` (an avatar's per-frame use, thesis 4.8 ms
+        per frame): ``stream.step(pose, trans)`` returns that frame's Delta, equal to ``predict``'s
+        frame of the same sequence."""
+        return SoftTissueStream(self, betas, fps)
+
     @torch.no_grad()
     def posed(self, body, betas, poses, trans, fps: float) -> torch.Tensor:
         """Posed vertices [m], (T, V, 3): W(T + B_s + B_p + Delta) with the body model (eq. 3.2)."""
@@ -155,6 +162,44 @@ class SoftSMPL(torch.nn.Module):
         t = torch.as_tensor(np.asarray(trans, dtype=np.float32), device=self.device).reshape(-1, 3)
         b = torch.as_tensor(np.asarray(betas, dtype=np.float32), device=self.device).reshape(-1)
         return posed_vertices(tb, delta, b, p, t)
+
+
+class SoftTissueStream:
+    """SoftSMPL one frame at a time (:meth:`SoftSMPL.stream`): keeps the previous frame's pose code,
+    root position and their velocities (the backward differences of :func:`motion_descriptor`, the
+    first frame at rest) and the GRU's state."""
+
+    def __init__(self, model: SoftSMPL, betas, fps: float):
+        self.model, self.fps = model, float(fps)
+        dev = model.device
+        b = torch.zeros(model.regressor.num_betas, device=dev)
+        given = torch.as_tensor(np.asarray(betas, dtype=np.float32).reshape(-1))[:model.regressor.num_betas]
+        b[:len(given)] = given.to(dev)
+        self.betas = b
+        self.prev = None            # (pose code, trans, pose-code velocity, root velocity) of the last frame
+        self.h = None               # GRU state, (layers, 1, hidden); None: zero
+
+    @torch.no_grad()
+    def step(self, pose, trans) -> torch.Tensor:
+        """Delta [m], (V, 3), of the next frame: pose (72,) [rad], trans (3,) [m]."""
+        m, dev, fps = self.model, self.model.device, self.fps
+        pose = torch.as_tensor(np.asarray(pose, dtype=np.float32), device=dev).reshape(1, 72)
+        trans = torch.as_tensor(np.asarray(trans, dtype=np.float32), device=dev).reshape(3)
+        code = pose_features(m.pose_ae, m.regressor.pose_input, pose)[0]
+        if self.prev is None:
+            v_code, vel = torch.zeros_like(code), torch.zeros_like(trans)
+            a_code, acc = v_code, vel
+        else:
+            p_code, p_trans, p_vcode, p_vel = self.prev
+            v_code, vel = (code - p_code) * fps, (trans - p_trans) * fps
+            a_code, acc = (v_code - p_vcode) * fps, (vel - p_vel) * fps
+        self.prev = (code, trans, v_code, vel)
+        R = axis_angle_to_matrix_torch(pose[:, :3])[0]
+        gamma = torch.cat([code, v_code, a_code, R.T @ vel, R.T @ acc])
+        r = m.regressor
+        x = (torch.cat([gamma, self.betas]) - r.x_mean) / r.x_std
+        h, self.h = r.gru(x[None, None], self.h)
+        return m.soft_ae.decode(r.out(h[0, 0]) + r.shortcut(x))
 
 
 def load_softtissue_model(folder: str | Path, *, identity: dict | None = None, device="cpu") -> SoftSMPL:
@@ -424,8 +469,11 @@ def train_softtissue(data: SoftTissueData, out: str | Path, *, body, config: Sof
             stage = STAGES[prog["stage"]]
             net = run.nets[stage]
             lr = {"pose_ae": config.pose_lr, "soft_ae": config.ae_lr, "regressor": config.reg_lr}[stage]
-            optimizer = torch.optim.Adam(net.parameters(), lr=lr)
+            optimizer = torch.optim.Adam(net.param_groups(lr) if stage == "soft_ae" else net.parameters(), lr=lr)
             if opt_state is not None:
+                if len(opt_state["param_groups"]) != len(optimizer.param_groups):
+                    raise InputError(f"{folder}: its {stage} checkpoint is from a simgen whose autoencoder had one "
+                                     "learning rate for all its layers; run again with --restart")
                 optimizer.load_state_dict(opt_state)
                 opt_state = None
             if stage == "regressor":
