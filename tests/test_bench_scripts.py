@@ -101,3 +101,21 @@ def test_softtissue_validate_reports_regions_and_modes(tmp_path):
     shape = r["clips"]["jump:0:0.1"]["shapes"]["0.0"]
     assert shape["min_det"] > 0 and shape["peak_m"]["head"] == 0.0 and shape["peak_m"]["belly"] > 0
     assert 2.0 <= r["first_mode_hz"]["belly"] <= 15.0
+
+
+def test_softtissue_runtime_times_a_trained_folder(tmp_path):
+    sys.path.insert(0, str(REPO / "tests"))
+    from test_softtissue_models import _tiny_body, _tiny_config
+
+    from simgen.learn.softtissue.data import synthetic_softtissue_data
+    from simgen.learn.softtissue.train import train_softtissue
+
+    body = _tiny_body()
+    data = synthetic_softtissue_data(body, motions=("jump", "walk"), subjects=2, frames=12)
+    train_softtissue(data, tmp_path / "m", body=body, config=_tiny_config())
+    result = run_script("softtissue_runtime.py", "--model", str(tmp_path / "m"), "--frames", "6",
+                        "--repeats", "1", out=tmp_path / "rt.json")
+    row = result["devices"]["cpu"]
+    assert result["frames"] == 6 and result["commit"] and result["machine"]["cpus"] >= 1
+    assert row["streamed_ms_per_frame"][0] > 0 and row["sequence_ms_per_frame"][0] > 0
+    assert row["decoder_ms"] > 0 and row["parameters"]["regressor"] > 0

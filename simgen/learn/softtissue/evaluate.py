@@ -26,7 +26,7 @@ import torch
 
 from simgen.errors import InputError
 
-__all__ = ["evaluate_softtissue", "plot_speed_vs_mass", "THESIS_TABLE_3_1", "PCA_SIZES"]
+__all__ = ["evaluate_softtissue", "plot_speed_vs_mass", "softtissue_runtime", "THESIS_TABLE_3_1", "PCA_SIZES"]
 
 #: Thesis Table 3.1 (Dyna, held-out sequences): mean vertex error [mm] by subspace size.
 THESIS_TABLE_3_1 = {"pca": {25: 3.82, 50: 3.17, 100: 2.38}, "ae": {25: 3.02, 50: 2.58, 100: 2.09}}
@@ -127,8 +127,9 @@ def _speed_summary(rows: list[dict]) -> dict:
     return out
 
 
-def _timing(model, seq, frames: int) -> dict:
-    """Runtime on ``frames`` frames of ``seq``: ``ms_per_frame`` streamed (:meth:`SoftSMPL.stream`,
+def softtissue_runtime(model, seq, frames: int) -> dict:
+    """Runtime of a loaded SoftSMPL ``model`` on ``frames`` frames of ``seq`` (anything with betas, poses,
+    trans, fps, num_frames): ``ms_per_frame`` streamed (:meth:`SoftSMPL.stream`,
     one frame at a time, each result waited for: an avatar's use, the thesis's 4.8 ms) and
     ``sequence_ms_per_frame`` (``predict`` on the whole clip at once, divided by its frames)."""
     T = min(frames, seq.num_frames)
@@ -192,7 +193,7 @@ def evaluate_softtissue(models, data, out, *, body, device: str = "cpu", timing_
         rows = _regressor_rows(m, groups, body, FleshParams().density) if trained["reg_epochs"] > 0 else []
         report["models"].append({"folder": str(f), "ae_latent": m.soft_ae.latent, "ae_mm": _ae_row(m, groups),
                                  "training": trained, "sequences": rows, "speed_vs_mass": _speed_summary(rows),
-                                 "timing": _timing(m, longest, timing_frames)})
+                                 "timing": softtissue_runtime(m, longest, timing_frames)})
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "softtissue_eval.json").write_text(json.dumps(report, indent=2) + "\n")
