@@ -213,9 +213,8 @@ class SoftTissueAE(nn.Module):
         """Adam parameter groups at learning rate ``lr``: the PCA layers' weights and the decoder's
         3V-vector bias at lr / sqrt(3V), everything else at lr. Adam's step is about lr per entry
         whatever the gradient; the PCA layers' entries are ~1/sqrt(3V) (unit rows in units of the
-        largest scale), so at lr their first step alone would move every vertex's reconstruction by
-        about as much as PCA's own error (measured: 0 -> 0.03 mm on data PCA reproduces exactly).
-        Scaled, each step changes every layer by the same relative amount."""
+        largest scale), so at lr their first step alone would undo much of the PCA start
+        (BENCHMARKS.md). Scaled, each step changes every layer by the same relative amount."""
         big = [self.enc_in.weight, self.dec_out.weight, self.dec_out.bias]
         ids = {id(q) for q in big}
         return [{"params": [q for q in self.parameters() if id(q) not in ids], "lr": lr},
