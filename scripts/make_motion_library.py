@@ -2,6 +2,7 @@
 
     python scripts/make_motion_library.py [--mocap ../shared/mocap/cmu] [--out motions] [--jobs 2]
                                           [--contact-sheet docs/img/motion_library.png]
+    python scripts/make_motion_library.py --only walk walk_fast      # just these clips, the rest kept
 
 Writes, for the bundled open body:
 - motions/NAME.npz for every procedural clip (simgen.motion.procedural, put on the floor) and for
@@ -12,7 +13,9 @@ Writes, for the bundled open body:
 - motions/library.json: {"version": 1, "clips": {NAME: {"split", "description", "source",
   "attribution"}}} with the fixed train/test split below;
 - motions/ATTRIBUTION.md: where the clips come from and CMU's terms of use.
-Motion files in the output folder that are not part of the library are removed. A JSON summary
+Motion files in the output folder that are not part of the library are removed (not with --only,
+which rebuilds the named clips into an existing library and leaves every other file as it is: the
+full build is deterministic, so it would write the others unchanged). A JSON summary
 (frames, duration, split, lowest foot point [m], fastest joint rotation [rad/s], fastest root
 motion [m/frame]) goes to stdout. With --contact-sheet, a PNG with frames of every clip is drawn
 too (pyvista offscreen).
@@ -81,11 +84,13 @@ def joint_speed(clip) -> np.ndarray:
     return (2.0 * np.arccos(dot) * clip.fps).max(axis=1)
 
 
-def build_procedural(body) -> list:
+def build_procedural(body, only=None) -> list:
     from simgen.motion import procedural, put_on_floor
 
     clips = []
     for name in procedural.list_procedural():
+        if only is not None and name not in only:
+            continue
         clip = put_on_floor(procedural.make_clip(name, body, fps=30.0), body)
         clip.meta.update(source="procedural", attribution=PROCEDURAL_ATTRIBUTION)
         clips.append(clip)
@@ -146,12 +151,14 @@ def clear_arms(clip):
     return separate_arms(clip, load("open"), betas=CLEAR_SHAPES)
 
 
-def build_cmu(body, mocap_dir: Path) -> list:
+def build_cmu(body, mocap_dir: Path, only=None) -> list:
     from simgen.motion import BvhMappingWarning, MotionClip, load_bvh, put_on_floor, resample, trim
     from simgen.motion.bvh import parse_bvh
 
     clips = []
     for name, filename, description, window in CMU_CLIPS:
+        if only is not None and name not in only:
+            continue
         path = mocap_dir / filename
         source_fps = parse_bvh(path).fps
         with warnings.catch_warnings():
@@ -225,17 +232,29 @@ def main(argv=None) -> int:
     parser.add_argument("--out", type=Path, default=REPO / "motions", help="library folder (default: motions/)")
     parser.add_argument("--jobs", type=int, default=2, help="processes that turn the arms out (default 2)")
     parser.add_argument("--contact-sheet", type=Path, default=None, help="also render a PNG contact sheet here")
+    parser.add_argument("--only", nargs="+", metavar="NAME", help="rebuild only these clips of an existing library")
     args = parser.parse_args(argv)
 
     from simgen.body import load
     from simgen.motion import save_motion
     from simgen.motion.ops import lowest_foot_heights
 
-    absent = [f for _, f, _, _ in CMU_CLIPS if not (args.mocap / f).is_file()]
+    absent = [f for n, f, _, _ in CMU_CLIPS if (not args.only or n in args.only) and not (args.mocap / f).is_file()]
     if absent:
         raise SystemExit(f"CMU BVH files {absent} are not in {args.mocap} (pass --mocap FOLDER)")
     body = load("open")
-    clips = build_procedural(body) + build_cmu(body, args.mocap)
+    index = {}
+    if args.only and args.contact_sheet is not None:
+        raise SystemExit("--contact-sheet draws the whole library: run it without --only")
+    if args.only:
+        lib = args.out / "library.json"
+        if not lib.is_file():
+            raise SystemExit(f"--only rebuilds clips of an existing library, and {lib} does not exist")
+        index = json.loads(lib.read_text(encoding="utf-8"))["clips"]
+        unknown = sorted(set(args.only) - set(index))
+        if unknown:
+            raise SystemExit(f"--only: {unknown} are not in {lib} (its clips: {', '.join(sorted(index))})")
+    clips = build_procedural(body, args.only) + build_cmu(body, args.mocap, args.only)
     # Arms out of the torso (the slow part: every frame posed for every shape): one clip per task,
     # longest first. Captured arms touch the actor's sides and procedural arms hang close to them;
     # on the wide shapes both sink into the torso, where no garment can lie.
@@ -251,13 +270,13 @@ def main(argv=None) -> int:
                 f"{side} {a['frames_turned']} frames up to {a['max_turn_deg']:.0f} deg" for side, a in arms.items()),
                 file=sys.stderr, flush=True)
     clips = cleared
-    names = [c.name for c in clips]
+    names = [c.name for c in clips] + list(index)
     missing = [n for n in TEST_CLIPS if n not in names]
     if missing:
         raise SystemExit(f"test clips {missing} are not in the library")
 
     args.out.mkdir(parents=True, exist_ok=True)
-    index, summary = {}, []
+    summary = []
     for clip in clips:
         split = "test" if clip.name in TEST_CLIPS else "train"
         clip.meta["split"] = split
@@ -273,7 +292,7 @@ def main(argv=None) -> int:
             "max_joint_speed_rad_s": round(float(joint_speed(clip).max()), 2),
             "max_root_step_m": round(float(np.linalg.norm(np.diff(clip.trans, axis=0), axis=1).max()), 4),
         })
-    for stale in sorted(args.out.glob("*.npz")):
+    for stale in [] if args.only else sorted(args.out.glob("*.npz")):
         if stale.stem not in index:
             stale.unlink()
             print(f"removed {stale} (not in the library)", file=sys.stderr)
