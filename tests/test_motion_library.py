@@ -191,6 +191,24 @@ def test_posed_body_stays_intact(clips, body, name):
                          f"vertices {edges[e].tolist()} (skinned to {joints}) to {worst:.2f}x its rest length")
 
 
+GAITS = ["walk", "walk_fast", "walk_curve", "side_step", "turn_in_place"]
+
+
+def test_gaits_move_the_pelvis_like_the_captured_walk(clips):
+    # A gait's pelvis rises and falls with its steps; its vertical acceleration (stored 30 fps clip,
+    # second differences) stays within the range of the library's captured walk (CMU 131_02, low-passed
+    # mocap), with a fifth to spare for walk_fast's longer steps. A pelvis that follows the feet's
+    # reach limit frame by frame drops by centimetres within a frame at each heel strike (47.7 m/s^2
+    # in walk_fast).
+    def peak(clip):
+        return float(np.abs(np.diff(clip.trans[:, 1], 2)).max() * clip.fps ** 2)
+
+    captured = peak(clips["cmu_131_02_walk"])
+    assert 5.0 < captured < 20.0  # the reference itself: a walk, not a jump
+    peaks = {name: peak(clips[name]) for name in GAITS}
+    assert max(peaks.values()) <= 1.2 * captured, (captured, peaks)
+
+
 # --------------------------------------------------------------------------- procedural clips
 @pytest.mark.parametrize("name", ["walk", "jump"])
 def test_regenerates_deterministically_and_matches_the_stored_file(clips, body, name):

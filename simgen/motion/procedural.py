@@ -607,6 +607,56 @@ def _fit_height(rig: _Rig, t, nominal, root_xz, root_rot, feet, env, *, reach=0.
     return np.where(tau_t > 0.0, soft, m)
 
 
+def _walk_height(rig: _Rig, t, plan: "_GaitPlan", root_xz_at, root_rot_at, env, nominal_at, *, reach=0.997,
+                 rate=240.0, margin=0.001) -> np.ndarray:
+    """Pelvis height of a walk [m], shape (T,): the nominal height (with its bob) minus one smooth
+    dip per double support, as deep as the feet need there, so the pelvis is lowest while both feet
+    are down and moves with the gait's rhythm.
+
+    The reach limit alone (:func:`_fit_height`) follows the landing foot's descent, so the pelvis
+    would drop within a frame or two at each heel strike. Here the limit is sampled at
+    ``rate`` [Hz]; a cubic with flat keys at the limit's lowest point between each two mid-stances
+    (one per double support) and halfway between those goes down to the limit there, and each key
+    is deepened by what still sticks out near it until the curve stays ``margin`` [m] (faded in with
+    the gait) under the limit; the plain minimum with the limit guards what is left."""
+    # a step beyond each end, so that the first and last dips are shaped like the others
+    pad = 1.0 / plan.g.cadence
+    grid = np.arange(float(t[0]) - pad, float(t[-1]) + pad, 1.0 / rate)
+
+    def limit(s):
+        e = env(s)
+        r = 1.0 - (1.0 - reach) * e
+        xz, rot, feet = root_xz_at(s), root_rot_at(s), plan.feet(s)
+        return np.min([rig.reach_height(side, xz, rot, rig.ankle_target(side, foot), reach=r)
+                       for side, foot in enumerate(feet)], axis=0)
+
+    nominal, lim = nominal_at(grid), limit(grid)
+    slack = margin * env(grid)  # none at rest, where the limit is the rest height itself
+    deficit = nominal - lim + slack
+    mids = np.sort(np.concatenate([st["mid"] for st in plan.stances]))
+    bounds = np.concatenate([[grid[0]], mids[(mids > grid[0]) & (mids < grid[-1])], [grid[-1]]])
+    seg = np.clip(np.searchsorted(bounds, grid, side="right") - 1, 0, len(bounds) - 2)
+    lows = np.array([np.flatnonzero(seg == k)[np.argmax(deficit[seg == k])] for k in range(len(bounds) - 1)])
+    # keys: each double support's deepest point, the highs halfway between them, and the ends
+    highs = (lows[1:] + lows[:-1]) // 2
+    idx = np.unique(np.concatenate([[0, len(grid) - 1], lows, highs]))
+    depth = np.maximum(deficit[idx], 0.0)
+    nearest = np.abs(grid[:, None] - grid[idx][None, :]).argmin(axis=1)
+
+    def dip(s):
+        return _hermite(s, [(float(grid[i]), -float(d), 0.0) for i, d in zip(idx, depth)])
+
+    for _ in range(8):  # deepen each key by what still sticks out of the limit nearest to it
+        over = deficit + dip(grid)
+        extra = np.zeros(len(idx))
+        np.maximum.at(extra, nearest, over)
+        if extra.max() < 1e-5:
+            break
+        depth += extra
+    y = nominal_at(t) + dip(t)
+    return np.minimum(y, limit(t))
+
+
 def _integral(fn: Callable, t_end: float) -> Callable:
     """Antiderivative of fn (zero at t = 0) as a function of time, from a 1 ms trapezoid grid."""
     grid = np.arange(-2.0, t_end + 2.0, 1e-3)
@@ -657,8 +707,10 @@ def _gait_clip(rig: _Rig, t, gait: _Gait, *, speed: float, ramp=(0.45, 2.2), hea
     if run:
         y = _run_height(rig, t, plan, root_xz_at, root_rot_at, env, Y0 - run_drop, run_reach)
     else:
-        nominal = Y0 - drop * e + bob * e * np.cos(4 * np.pi * (phi - D / 2))
-        y = _fit_height(rig, t, nominal, root_xz, root_rot, feet, e)
+        def nominal_at(s):
+            return Y0 - drop * env(s) + bob * env(s) * np.cos(4 * np.pi * (plan.phase(s) - D / 2))
+
+        y = _walk_height(rig, t, plan, root_xz_at, root_rot_at, env, nominal_at)
     root_pos = np.stack([root_xz[:, 0], y, root_xz[:, 1]], axis=-1)
 
     c1 = np.cos(2 * np.pi * phi)
