@@ -45,16 +45,20 @@ def _commit() -> str:
         return "unknown"
 
 
+def _cpu_name() -> str:
+    """The processor's model name (/proc/cpuinfo where there is one)."""
+    try:
+        with open("/proc/cpuinfo") as fh:
+            return next(line.split(":", 1)[1].strip() for line in fh if line.startswith("model name"))
+    except (OSError, StopIteration):
+        return platform.processor()
+
+
 def _device(name: str) -> dict:
     import warp as wp
 
     info = {"warp_device": name, "warp": wp.__version__, "python": platform.python_version(),
-            "cpus": os.cpu_count(), "load_average_1min_before": os.getloadavg()[0]}
-    try:
-        with open("/proc/cpuinfo") as fh:
-            info["cpu"] = next(line.split(":", 1)[1].strip() for line in fh if line.startswith("model name"))
-    except (OSError, StopIteration):
-        info["cpu"] = platform.processor()
+            "cpus": os.cpu_count(), "load_average_1min_before": os.getloadavg()[0], "cpu": _cpu_name()}
     if name.startswith("cuda"):
         info["gpu"] = wp.get_device(name).name
     return info

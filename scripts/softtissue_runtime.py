@@ -21,19 +21,14 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from dataset_bench import _commit, _emit  # noqa: E402  (one definition of what a benchmark records)
+from dataset_bench import _commit, _cpu_name, _emit  # noqa: E402  (one definition of what a benchmark records)
 
 
 def _machine(devices: list[str]) -> dict:
     import torch
 
     info = {"torch": torch.__version__, "python": platform.python_version(), "cpus": os.cpu_count(),
-            "torch_threads": torch.get_num_threads(), "cpu": platform.processor()}
-    try:
-        with open("/proc/cpuinfo") as fh:
-            info["cpu"] = next(line.split(":", 1)[1].strip() for line in fh if line.startswith("model name"))
-    except (OSError, StopIteration):
-        pass
+            "torch_threads": torch.get_num_threads(), "cpu": _cpu_name()}
     if any(d.startswith("cuda") for d in devices):
         info["gpu"] = torch.cuda.get_device_name(0)
     return info

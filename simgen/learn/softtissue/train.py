@@ -137,12 +137,16 @@ class SoftSMPL(torch.nn.Module):
         dev = self.device
         poses = torch.as_tensor(np.asarray(poses, dtype=np.float32), device=dev).reshape(-1, 72)
         trans = torch.as_tensor(np.asarray(trans, dtype=np.float32), device=dev).reshape(-1, 3)
-        b = torch.zeros(self.regressor.num_betas, device=dev)
-        given = torch.as_tensor(np.asarray(betas, dtype=np.float32).reshape(-1))[:self.regressor.num_betas]
-        b[:len(given)] = given.to(dev)
         gamma = self.descriptor(poses, trans, fps)
-        codes = self.regressor(gamma[None], b[None])[0]
+        codes = self.regressor(gamma[None], self.betas_input(betas)[None])[0]
         return self.soft_ae.decode(codes)
+
+    def betas_input(self, betas) -> torch.Tensor:
+        """The regressor's betas (num_betas,) on the model's device: ``betas`` cut or padded with zeros."""
+        b = torch.zeros(self.regressor.num_betas, device=self.device)
+        given = torch.as_tensor(np.asarray(betas, dtype=np.float32).reshape(-1))[:self.regressor.num_betas]
+        b[:len(given)] = given.to(self.device)
+        return b
 
     def stream(self, betas, fps: float) -> "SoftTissueStream":
         """A frame-by-frame player for betas (B,) at ``fps`` (an avatar's per-frame use, thesis 4.8 ms
@@ -171,11 +175,7 @@ class SoftTissueStream:
 
     def __init__(self, model: SoftSMPL, betas, fps: float):
         self.model, self.fps = model, float(fps)
-        dev = model.device
-        b = torch.zeros(model.regressor.num_betas, device=dev)
-        given = torch.as_tensor(np.asarray(betas, dtype=np.float32).reshape(-1))[:model.regressor.num_betas]
-        b[:len(given)] = given.to(dev)
-        self.betas = b
+        self.betas = model.betas_input(betas)
         self.prev = None            # (pose code, trans, pose-code velocity, root velocity) of the last frame
         self.h = None               # GRU state, (layers, 1, hidden); None: zero
 
