@@ -210,17 +210,17 @@ def _markdown(r: dict) -> str:
     lines = [f"# SoftSMPL on {r['data']}", "",
              f"Held out: motions {', '.join(r['held_out']['motions']) or '-'}; shapes "
              f"{', '.join(r['held_out']['subjects']) or '-'}. PCA from {r['pca_frames']} of {r['train_frames']} "
-             f"training frames. Mean vertex error [mm].", "",
+             f"training frames. Mean vertex error [mm] (Table 3.1 to 3 significant digits).", "",
              "## Table 3.1: soft-tissue subspace", "",
              "| dims | " + " | ".join(f"PCA {g}" for g in groups) + " | autoencoder (" + ", ".join(groups)
              + ") | thesis PCA / AE (Dyna) |", "|---" * (len(groups) + 3) + "|"]
     for k, row in r["pca_mm"].items():
         ae = [m for m in r["models"] if m["ae_latent"] == int(k)]
         # regressors trained on one base share its autoencoder: list each result once
-        ae_text = "; ".join(dict.fromkeys(", ".join(f"{v:.3f}" for v in m["ae_mm"].values()) for m in ae)) or "-"
+        ae_text = "; ".join(dict.fromkeys(", ".join(f"{v:.3g}" for v in m["ae_mm"].values()) for m in ae)) or "-"
         th = THESIS_TABLE_3_1
         thesis = f"{th['pca'][int(k)]} / {th['ae'][int(k)]}" if int(k) in th["pca"] else "-"
-        lines.append(f"| {k} | " + " | ".join(f"{row[g]:.3f}" for g in groups) + f" | {ae_text} | {thesis} |")
+        lines.append(f"| {k} | " + " | ".join(f"{row[g]:.3g}" for g in groups) + f" | {ae_text} | {thesis} |")
     lines += _fig_3_7_lines(r)
     for m in r["models"]:
         t = m["timing"]
