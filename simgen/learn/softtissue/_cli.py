@@ -40,7 +40,8 @@ def load_softtissue_source(data: str, body_file: str | None, *, max_frames: int 
     from simgen.learn.softtissue.dyna import read_dyna
 
     body = load(body_file)
-    return read_dyna(path, body, max_frames=max_frames, device=device, progress=progress), body
+    # mirrored as in the thesis (section 3.4.1); a simulated store simulates its mirror images instead
+    return read_dyna(path, body, max_frames=max_frames, device=device, mirror=True, progress=progress), body
 
 
 def run_train_softtissue(*, data: str, body: str | None, out: Path, device: str, time_budget: float | None,

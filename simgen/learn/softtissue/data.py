@@ -26,7 +26,10 @@ import numpy as np
 from simgen.errors import InputError
 
 __all__ = ["SoftTissueSequence", "SoftTissueData", "synthetic_softtissue_data", "synthetic_displacements",
-           "soft_region_weights", "root_local_acceleration", "one_shape_per_motion"]
+           "soft_region_weights", "root_local_acceleration", "one_shape_per_motion", "with_mirrored",
+           "mirror_vertex_map"]
+
+MIRROR_TOLERANCE = 2e-3   # [m] largest distance of a reflected template vertex from its mirror vertex
 
 
 @dataclass
@@ -170,6 +173,45 @@ def one_shape_per_motion(data: "SoftTissueData") -> "SoftTissueData":
         order = subjects[i % len(subjects):] + subjects[:i % len(subjects)]
         keep.add(have[clip][next(sub for sub in order if sub in have[clip])])
     return data.subset(lambda s: s.name in keep)
+
+
+def mirror_vertex_map(template) -> np.ndarray:
+    """(V,) int64: the vertex each template vertex [m], (V, 3), lands on when reflected across the
+    sagittal plane (x -> -x in SMPL's frame). Refuses a template that is not left-right symmetric
+    within MIRROR_TOLERANCE or whose map is not its own inverse."""
+    from scipy.spatial import cKDTree
+
+    v = np.asarray(template, dtype=np.float64)
+    dist, idx = cKDTree(v).query(v * np.array([-1.0, 1.0, 1.0]))
+    if dist.max() > MIRROR_TOLERANCE or not np.array_equal(idx[idx], np.arange(len(v))):
+        raise InputError(f"the body's template is not left-right symmetric (a reflected vertex lies "
+                         f"{1000 * dist.max():.1f} mm from the nearest vertex, tolerance "
+                         f"{1000 * MIRROR_TOLERANCE:.0f} mm): its sequences cannot be mirrored")
+    return idx.astype(np.int64)
+
+
+def with_mirrored(data: "SoftTissueData") -> "SoftTissueData":
+    """``data`` and the mirror image of each of its sequences (thesis section 3.4.1): joints swapped and
+    reflected (:func:`simgen.motion.ops.mirror`), and Delta [m] of vertex v taken from its mirror vertex
+    with x negated, so that the mirrored body is the reflection of the original in the unposed frame.
+    A mirrored sequence keeps its subject and betas (the shape space is taken as symmetric), is named
+    ``<name>_mirror`` and has ``meta["mirrored"]``; a mirrored sequence, or one whose mirror image is
+    there already, is not mirrored again."""
+    from simgen.motion.clip import MotionClip
+    from simgen.motion.ops import mirror
+
+    vmap = mirror_vertex_map(data.template)
+    flip = np.array([-1.0, 1.0, 1.0], dtype=np.float32)
+    out = list(data.sequences)
+    names = {s.name for s in data.sequences}
+    for s in data.sequences:
+        if s.meta.get("mirrored") or f"{s.name}_mirror" in names:
+            continue
+        m = mirror(MotionClip(s.motion, s.fps, s.poses.reshape(len(s.poses), -1, 3), s.trans))
+        out.append(SoftTissueSequence(f"{s.name}_mirror", s.subject, s.motion, s.betas,
+                                      m.poses.reshape(len(s.poses), -1), m.trans, s.fps,
+                                      s.displacements[:, vmap] * flip, meta={**s.meta, "mirrored": True}))
+    return SoftTissueData(out, data.body, data.faces, data.template, data.source)
 
 
 # ------------------------------------------------------------------------------------ synthetic test signal

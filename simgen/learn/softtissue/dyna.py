@@ -42,7 +42,7 @@ from pathlib import Path
 import numpy as np
 
 from simgen.errors import InputError
-from simgen.learn.softtissue.data import SoftTissueData, SoftTissueSequence
+from simgen.learn.softtissue.data import SoftTissueData, SoftTissueSequence, with_mirrored
 
 __all__ = ["DYNA_FPS", "SMPL_VERTICES", "list_dyna_sequences", "read_dyna", "fit_body_to_meshes",
            "unposed_displacements"]
@@ -230,7 +230,7 @@ def _levenberg_marquardt(residual, x, iterations: int, *extra):
 
 def read_dyna(path: str | Path, body, *, sequences=None, subjects=None, max_frames: int | None = None,
               require_smpl: bool = True, fps: float = DYNA_FPS, steps: int = 300, lm_steps: int = 30,
-              device: str = "cpu", progress=None) -> SoftTissueData:
+              device: str = "cpu", mirror: bool = False, progress=None) -> SoftTissueData:
     """Read a Dyna HDF5 file and register the body to it: :class:`SoftTissueData` with fitted betas,
     poses, trans and the unposed displacements Delta (module docstring).
 
@@ -238,8 +238,9 @@ def read_dyna(path: str | Path, body, *, sequences=None, subjects=None, max_fram
     data); sequences: names to read (None: all); subjects: subject ids to read (None: all);
     max_frames: the first N frames of each sequence; require_smpl: refuse a body whose vertex count is
     not SMPL's 6890 (False: only require the file's count to equal the body's, for test files);
-    fps [1/s]: the capture rate (Dyna: 60); steps / lm_steps: optimiser iterations per fit;
-    progress(done, total) after each sequence.
+    fps [1/s]: the capture rate (Dyna: 60); steps / lm_steps: optimiser iterations per fit; mirror:
+    add each sequence's mirror image (thesis section 3.4.1,
+    :func:`~simgen.learn.softtissue.data.with_mirrored`); progress(done, total) after each sequence.
     """
     import torch
 
@@ -288,5 +289,6 @@ def read_dyna(path: str | Path, body, *, sequences=None, subjects=None, max_fram
                                            meta={"source": str(path), "fit_mean_vertex_error_m": err}))
             if progress is not None:
                 progress(i + 1, len(names))
-    return SoftTissueData(seqs, {"id": body.name, "hash": body.hash}, body.faces, body.v_template,
+    data = SoftTissueData(seqs, {"id": body.name, "hash": body.hash}, body.faces, body.v_template,
                           f"dyna:{path.name}")
+    return with_mirrored(data) if mirror else data

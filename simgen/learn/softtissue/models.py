@@ -33,7 +33,7 @@ from torch import nn
 from simgen.errors import InputError
 from simgen.learn.models import INPUT_STD_FLOOR, MODEL_KINDS
 
-__all__ = ["LAMBDA_NORM", "ResidualUnit", "SoftTissueAE", "PoseAE", "SoftTissueRegressor", "face_normals",
+__all__ = ["pad_sequences", "LAMBDA_NORM", "ResidualUnit", "SoftTissueAE", "PoseAE", "SoftTissueRegressor", "face_normals",
            "normal_loss", "surface_loss", "reconstruction_loss", "pose_ae_loss", "regression_loss",
            "motion_descriptor", "pca_basis", "pca_frames", "PCA_FRAMES", "descriptor_size", "POSE_INPUTS",
            "pose_features"]
@@ -104,6 +104,22 @@ def regression_loss(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor
             out[name] = (d ** 2).mean() if d.numel() else d.sum()
     out["total"] = out["pos"] + out["vel"] + out["acc"]
     return out
+
+
+def pad_sequences(items: list, num_betas: int) -> tuple:
+    """Batch of the regressor: items [(gamma (T_i, F), codes (T_i, K), betas (B_i,))], each on one
+    device, -> (gamma (N, T, F), betas (N, num_betas), codes (N, T, K), mask (N, T) bool), zero-padded
+    to the longest sequence (mask False there) and betas to ``num_betas``."""
+    Tm = max(len(g) for g, _, _ in items)
+    F, K, dev = items[0][0].shape[1], items[0][1].shape[1], items[0][0].device
+    gamma = torch.zeros(len(items), Tm, F, device=dev)
+    codes = torch.zeros(len(items), Tm, K, device=dev)
+    mask = torch.zeros(len(items), Tm, dtype=torch.bool, device=dev)
+    betas = torch.zeros(len(items), num_betas, device=dev)
+    for k, (g, c, b) in enumerate(items):
+        gamma[k, :len(g)], codes[k, :len(g)], mask[k, :len(g)] = g, c, True
+        betas[k, :len(b)] = b
+    return gamma, betas, codes, mask
 
 
 # ------------------------------------------------------------------------------------ networks

@@ -15,8 +15,9 @@ OUT/softtissue/ holds ``pose_ae/``, ``soft_ae/``, ``regressor/`` (each model.pt 
 :mod:`simgen.learn.checkpoint`), ``log.csv`` (one row per epoch of each stage), ``split.json`` and
 ``train_state.pt`` (the stage, epoch and step reached, every model, the optimiser: rerunning resumes;
 other settings are refused unless ``resume=False``). A simulated store has every shape perform every
-motion and its mirror (what sections 3.3.2 and 3.4.1 add to Dyna); for Dyna files neither is done
-(docs/learn.md).
+motion and its mirror (what sections 3.3.2 and 3.4.1 add to Dyna). Dyna files are mirrored when read
+(:func:`~simgen.learn.softtissue.dyna.read_dyna`), and with ``motion_transfer`` each subject plays the
+clips it lacks with its own regressor (:mod:`~simgen.learn.softtissue.transfer`).
 """
 
 from __future__ import annotations
@@ -36,8 +37,9 @@ from simgen.errors import InputError
 from simgen.learn.checkpoint import check_identity, load_model, read_config, save_model
 from simgen.learn.softtissue.data import SoftTissueData, one_shape_per_motion
 from simgen.learn.softtissue.models import (LAMBDA_NORM, POSE_INPUTS, PoseAE, SoftTissueAE, SoftTissueRegressor,
-                                            descriptor_size, motion_descriptor, pca_frames, pose_ae_loss,
-                                            pose_features, reconstruction_loss, regression_loss)
+                                            descriptor_size, motion_descriptor, pad_sequences, pca_frames,
+                                            pose_ae_loss, pose_features, reconstruction_loss, regression_loss)
+from simgen.learn.softtissue.transfer import transferred_items
 from simgen.learn.train import STATE_FILE, _device, _load_state, _Logger
 from simgen.settings import setting, validate
 
@@ -76,7 +78,8 @@ class SoftTissueConfig:
     pose_input: str = setting("code", choices=POSE_INPUTS,
                               doc="the regressor's pose input: the pose AE's code (section 3.3.1) or the raw joint "
                                   "rotations (Fig. 3.7's ablation without static pose disentangling)")
-    motion_transfer: bool = setting(True, doc="train the regressor on every shape doing every motion (section 3.3.2); "
+    motion_transfer: bool = setting(True, doc="train the regressor on every shape doing every motion (section 3.3.2): "
+                                              "clips a subject lacks are played by that subject's own regressor; "
                                               "False keeps one shape per motion (Fig. 3.7's ablation without dynamic "
                                               "pose disentangling)")
     base: str = setting("", doc="a trained SoftSMPL folder whose two autoencoders this run takes, training only the "
@@ -239,14 +242,12 @@ class _Run:
         self.faces = torch.as_tensor(np.array(data.faces), device=dev)
         self.template = torch.as_tensor(data.template, device=dev)
         torch.manual_seed(config.seed)
-        V, B = data.num_vertices, data.num_betas
+        V = data.num_vertices
         self.nets = {
             "pose_ae": PoseAE(V, config.pose_latent, config.pose_hidden).to(dev),
             "soft_ae": SoftTissueAE(V, config.ae_latent, config.ae_hidden, config.ae_blocks,
                                     config.ae_dropout).to(dev),
-            "regressor": SoftTissueRegressor(
-                descriptor_size(config.pose_latent if config.pose_input == "code" else 69), B, config.ae_latent,
-                config.reg_hidden, config.reg_layers, config.pose_input).to(dev)}
+            "regressor": self.new_regressor(config)}
         if config.base:
             self._take_base(config)
 
@@ -261,6 +262,14 @@ class _Run:
         self.test_all = _merge(self.test, data) if self.test else None   # one object: the cache keys on it
         self.test_frames = frames(self.test_all) if self.test and not config.base else None
         self._seq_cache: dict = {}
+        self.items: list = []          # the regressor's training items (prepare_regressor)
+        self.transfer: dict = {}       # what motion transfer added, per subject
+
+    def new_regressor(self, config: SoftTissueConfig) -> SoftTissueRegressor:
+        """An untrained regressor of this run's sizes, on its device."""
+        return SoftTissueRegressor(descriptor_size(config.pose_latent if config.pose_input == "code" else 69),
+                                   self.data.num_betas, config.ae_latent, config.reg_hidden, config.reg_layers,
+                                   config.pose_input).to(self.dev)
 
     def _take_base(self, config: SoftTissueConfig) -> None:
         """Load the pose and soft-tissue autoencoders of ``config.base`` (same body, trained on none of this
@@ -278,7 +287,7 @@ class _Run:
                              f"({len(leaked)} such sequences): its autoencoders would have seen the test data")
 
     def n_items(self, stage: str) -> int:
-        return len(self.train.sequences) if stage == "regressor" else len(self.frames[0])
+        return len(self.items) if stage == "regressor" else len(self.frames[0])
 
     def loss(self, stage: str, idx, config: SoftTissueConfig, test: bool = False) -> dict:
         if stage != "regressor":
@@ -290,24 +299,9 @@ class _Run:
         if stage == "soft_ae":
             d = disp[idx]
             return reconstruction_loss(d, self.nets["soft_ae"](d), self.template, self.faces, config.lambda_norm)
-        gamma, betas, target, mask = self.sequences(self.test_all if test else self.train, idx)
+        items = [self._encoded(self.test_all, int(i)) for i in idx] if test else [self.items[int(i)] for i in idx]
+        gamma, betas, target, mask = pad_sequences(items, self.data.num_betas)
         return regression_loss(self.nets["regressor"](gamma, betas), target, mask)
-
-    @torch.no_grad()
-    def sequences(self, d: SoftTissueData, idx):
-        """Padded (gamma (N, T, F), betas (N, B), target codes (N, T, K), mask (N, T)) of sequences idx.
-        Each sequence is encoded once (the encoders are frozen by the regressor stage)."""
-        enc = [self._encoded(d, int(i)) for i in idx]
-        Tm = max(len(g) for g, _, _ in enc)
-        F, K, B = enc[0][0].shape[1], enc[0][1].shape[1], self.data.num_betas
-        gamma = torch.zeros(len(enc), Tm, F, device=self.dev)
-        target = torch.zeros(len(enc), Tm, K, device=self.dev)
-        mask = torch.zeros(len(enc), Tm, dtype=torch.bool, device=self.dev)
-        betas = torch.zeros(len(enc), B, device=self.dev)
-        for k, (g, c, b) in enumerate(enc):
-            gamma[k, :len(g)], target[k, :len(g)], mask[k, :len(g)] = g, c, True
-            betas[k, :len(b)] = b
-        return gamma, betas, target, mask
 
     @torch.no_grad()
     def _encoded(self, d: SoftTissueData, i: int):
@@ -323,9 +317,19 @@ class _Run:
             self._seq_cache[key] = (gamma, codes, torch.as_tensor(s.betas, device=self.dev))
         return self._seq_cache[key]
 
-    def prepare_regressor(self) -> None:
-        """Standardise the regressor's inputs with the training sequences (frozen encoders)."""
-        gamma, betas, _, mask = self.sequences(self.train, range(len(self.train.sequences)))
+    def prepare_regressor(self, config: SoftTissueConfig, folder: Path) -> None:
+        """The regressor's training items: the training sequences through the frozen encoders and, with
+        motion transfer, each clip a subject lacks played by that subject's own regressor
+        (:mod:`~simgen.learn.softtissue.transfer`, kept in folder/transfer/); the regressor's inputs
+        standardised on them."""
+        self.items = [self._encoded(self.train, i) for i in range(len(self.train.sequences))]
+        if config.motion_transfer:
+            extra, self.transfer = transferred_items(
+                self.train, lambda i: self._encoded(self.train, i), lambda: self.new_regressor(config),
+                epochs=config.reg_epochs, batch=config.reg_batch, lr=config.reg_lr, seed=config.seed,
+                folder=folder / "transfer", identity=self.identity)
+            self.items += extra
+        gamma, betas, _, mask = pad_sequences(self.items, self.data.num_betas)
         self.nets["regressor"].set_standardisation(self.nets["regressor"].inputs(gamma, betas)[mask])
 
     @torch.no_grad()
@@ -462,7 +466,8 @@ def train_softtissue(data: SoftTissueData, out: str | Path, *, body, config: Sof
             save_model(run.nets[k], folder / k, identity=run.identity, training={
                 "method": "SoftSMPL", "stage": k, "source": data.source, "split": split, "config": asdict(config),
                 "fps": run.train.sequences[0].fps, "loss": prog["losses"].get(k), "epochs": prog["done"].get(k),
-                "closed_at_budget": k in prog.get("closed", [])})
+                "closed_at_budget": k in prog.get("closed", []),
+                **({"motion_transfer": run.transfer} if k == "regressor" and run.transfer else {})})
 
     try:
         while prog["stage"] < len(STAGES):
@@ -477,7 +482,7 @@ def train_softtissue(data: SoftTissueData, out: str | Path, *, body, config: Sof
                 optimizer.load_state_dict(opt_state)
                 opt_state = None
             if stage == "regressor":
-                run.prepare_regressor()
+                run.prepare_regressor(config, folder)
             batch = {"pose_ae": config.pose_batch, "soft_ae": config.ae_batch, "regressor": config.reg_batch}[stage]
             n = run.n_items(stage)
             batches = (n + batch - 1) // batch
