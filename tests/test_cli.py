@@ -489,6 +489,16 @@ def test_init_warp_is_quiet():
     assert "NVIDIA CUDA driver" not in result.stderr
 
 
+def test_library_calls_that_start_warp_are_quiet():
+    """A script that uses the library without the CLI (make_motion_library's workers query the body's
+    surface) gets no Warp banner on stdout: the library starts Warp through init_warp."""
+    code = ("from simgen.body import load\nfrom simgen.body.surface import SurfaceMesh\n"
+            "b = load('open')\nSurfaceMesh(b.v_template, b.faces)\nprint('END')\n")
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert result.stdout == "END\n"
+    assert "NVIDIA CUDA driver" not in result.stderr
+
+
 def test_compile_notice_only_when_warp_compiles(tmp_path):
     script = tmp_path / "tiny_kernel.py"
     script.write_text(

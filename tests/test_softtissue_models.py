@@ -277,6 +277,27 @@ def test_a_stage_budget_ends_each_stage_at_its_epoch_and_a_rerun_keeps_it(body, 
     assert len(list(csv.DictReader(open(log)))) == 3
 
 
+def test_resuming_an_autoencoder_saved_with_one_learning_rate_asks_for_a_restart(body, data, tmp_path):
+    # Checkpoints written before SoftTissueAE.param_groups hold one Adam group for the autoencoder; their
+    # state cannot be mapped onto the groups now, so the rerun says so in one sentence instead of failing
+    # inside torch.
+    from simgen.learn.train import STATE_FILE
+    from simgen.learn.softtissue.train import train_softtissue
+
+    config = _tiny_config(pose_epochs=0, ae_epochs=3)
+    r = train_softtissue(data, tmp_path, body=body, config=config, time_budget=1e-9)
+    assert r.stage == "soft_ae" and r.stopped == "time budget"
+    path = tmp_path / "softtissue" / STATE_FILE
+    state = torch.load(path, weights_only=True)
+    groups = state["optimizer"]["param_groups"]
+    assert len(groups) == 2
+    state["optimizer"]["param_groups"] = [{**groups[0], "params": sorted(p for g in groups for p in g["params"])}]
+    torch.save(state, path)
+    with pytest.raises(InputError, match="one learning rate.*--restart"):
+        train_softtissue(data, tmp_path, body=body, config=config)
+    assert train_softtissue(data, tmp_path, body=body, config=config, resume=False).stage == "done"
+
+
 def test_models_saved_before_new_settings_still_load(body, data, tmp_path):
     # A regressor config without pose_input (added later) loads with its default; autoencoder weights
     # without the 'unit' buffer load as metres (unit = 1).

@@ -51,8 +51,9 @@ class SurfaceMesh:
     def __init__(self, vertices, faces, *, device: str | None = "cpu") -> None:
         import warp as wp
 
-        wp.config.quiet = True
-        wp.init()
+        from simgen._warp_log import init_warp
+
+        init_warp(device)
         v = np.asarray(vertices, dtype=np.float64)
         f = np.asarray(faces, dtype=np.int32)
         if v.ndim != 2 or v.shape[1] != 3 or f.ndim != 2 or f.shape[1] != 3 or len(f) == 0:

@@ -321,8 +321,9 @@ class DatasetSpec:
             return "cuda:0" if self.device == "cuda" else self.device
         import warp as wp
 
-        wp.config.quiet = True
-        wp.init()
+        from simgen._warp_log import init_warp
+
+        init_warp()
         return "cuda:0" if wp.get_cuda_device_count() > 0 else "cpu"
 
     def smoothing_params(self):

@@ -94,11 +94,11 @@ class CollisionSurface:
         body with vertices verts [m] (V, 3), both float32 or float64."""
         import warp as wp
 
+        from simgen._warp_log import init_warp
         from simgen.body.surface_query import query_kernel
 
-        wp.config.quiet = True
-        wp.init()
         dev = "cpu" if x.device.type == "cpu" else f"cuda:{x.device.index or 0}"
+        init_warp(dev)
         scalar, vec3 = (wp.float64, wp.vec3d) if x.dtype == torch.float64 else (wp.float32, wp.vec3)
         x, verts = x.detach().contiguous(), verts.detach().contiguous()
         n = len(x)
