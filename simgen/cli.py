@@ -1189,6 +1189,9 @@ def train_softtissue_cmd(
     stage_budget: Optional[float] = typer.Option(None, "--stage-budget", help="Seconds per stage: a stage ends at "
                                                  "the epoch under way after this long (logged; not reopened).",
                                                  rich_help_panel=EXPERT),
+    no_mirror: bool = typer.Option(False, "--no-mirror", help="For a Dyna file: do not add each sequence's mirror "
+                                   "image (section 3.4.1; it needs a left-right symmetric template).",
+                                   rich_help_panel=EXPERT),
 ) -> None:
     """Train SoftSMPL (thesis ch. 3): pose AE, soft-tissue AE, GRU regressor; resumes a run found in --out."""
     from simgen.learn.softtissue._cli import run_train_softtissue
@@ -1197,7 +1200,8 @@ def train_softtissue_cmd(
                          max_frames=max_frames, test_motions=test_motions, test_subjects=test_subjects,
                          pose_epochs=pose_epochs, ae_epochs=ae_epochs, reg_epochs=reg_epochs, ae_latent=ae_latent,
                          seed=seed, pose_input=pose_input, motion_transfer=False if no_motion_transfer else None,
-                         base=base, stage_budget=stage_budget, echo=typer.echo, progress_factory=_progress)
+                         base=base, stage_budget=stage_budget, mirror=not no_mirror, echo=typer.echo,
+                         progress_factory=_progress)
 
 
 @eval_app.command("compare")

@@ -97,6 +97,9 @@ def test_dyna_reader_round_trip(body, tmp_path):
         body_err = (fitted - truth[s.name][0]).norm(dim=-1).max().item()
         delta_err = np.linalg.norm(s.displacements - truth[s.name][1].numpy(), axis=-1).max()
         assert body_err < 1e-3 and delta_err < 1e-3, (s.name, body_err, delta_err)
+    # mirroring (section 3.4.1) needs a symmetric template; this body (every 60th triangle) is not
+    with pytest.raises(InputError, match="not left-right symmetric.*--no-mirror"):
+        read_dyna(path, body, require_smpl=False, steps=2, lm_steps=1, mirror=True)
 
 
 # ------------------------------------------------------------------------------------ autoencoder

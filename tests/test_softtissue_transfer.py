@@ -72,7 +72,6 @@ def test_mirroring_refuses_an_asymmetric_body():
 
 def test_motion_transfer_fills_the_clips_a_subject_lacks(tmp_path):
     from simgen.learn.checkpoint import load_model
-    from simgen.learn.softtissue.models import pad_sequences
     from simgen.learn.softtissue.train import _Run, train_softtissue
     from simgen.learn.softtissue.transfer import missing_clips
 
@@ -108,9 +107,19 @@ def test_motion_transfer_fills_the_clips_a_subject_lacks(tmp_path):
         assert torch.allclose(codes, r1(gamma[None], betas[None])[0])
     assert not torch.allclose(codes, src[1])                  # not s0's own codes copied over
 
+    # a rerun of the finished run keeps the record; a restart with another code size trains new subject
+    # regressors for its own autoencoder (the kept ones play codes of the old one)
+    train_softtissue(data, tmp_path / "m", body=body, config=cfg)
+    again = json.loads((folder / "regressor" / "config.json").read_text())["training"]["motion_transfer"]
+    assert again == saved
+    bigger = _tiny_config(test_motions="squat", reg_epochs=4, ae_latent=6)
+    assert train_softtissue(data, tmp_path / "m", body=body, config=bigger, resume=False).stage == "done"
+    assert load_model(folder / "transfer" / "s1", identity=run.identity).latent == 6
+
     # without motion transfer nothing is played, and the regressor trains on one subject per clip
-    train_softtissue(data, tmp_path / "one", body=body, config=_tiny_config(test_motions="squat",
-                                                                          motion_transfer=False, reg_epochs=1))
-    assert not (tmp_path / "one" / "softtissue" / "transfer").exists()
-    g, b, c, mask = pad_sequences(run.items[:2], data.num_betas)
-    assert mask.sum() == sum(len(i[0]) for i in run.items[:2])
+    one_cfg = _tiny_config(test_motions="squat", motion_transfer=False, reg_epochs=1)
+    one = _Run(data, one_cfg, torch.device("cpu"), body)
+    one.prepare_regressor(one_cfg, tmp_path / "one")
+    assert len(one.items) == len({(s.motion, s.subject) for s in one.train.sequences}) == 3
+    assert len({s.subject for s in one.train.sequences}) == 3 and one.transfer == {}
+    assert not (tmp_path / "one" / "transfer").exists()

@@ -13,11 +13,13 @@ __all__ = ["run_train_softtissue", "run_eval_softtissue", "load_softtissue_sourc
 
 
 def load_softtissue_source(data: str, body_file: str | None, *, max_frames: int | None = None, device: str = "cpu",
-                           progress=None):
+                           mirror: bool = True, progress=None):
     """(SoftTissueData, BodyModel) of a ``--data`` value: "synthetic" (the bundled open body and the
     synthetic test signal of :func:`~simgen.learn.softtissue.data.synthetic_softtissue_data`), a
     soft-tissue store (``simgen dataset generate softtissue``, :func:`~simgen.dataset.softtissue.read_softtissue_store`)
-    or a Dyna .h5 file, read with the SMPL body file ``body_file`` (:func:`~simgen.learn.softtissue.dyna.read_dyna`)."""
+    or a Dyna .h5 file, read with the SMPL body file ``body_file`` (:func:`~simgen.learn.softtissue.dyna.read_dyna`)
+    and, with ``mirror``, each of its sequences mirrored as in the thesis (section 3.4.1; a simulated store
+    simulates its mirror images instead)."""
     from simgen.body import load
     from simgen.dataset.softtissue import is_softtissue_store, read_softtissue_store, store_body
 
@@ -40,8 +42,7 @@ def load_softtissue_source(data: str, body_file: str | None, *, max_frames: int 
     from simgen.learn.softtissue.dyna import read_dyna
 
     body = load(body_file)
-    # mirrored as in the thesis (section 3.4.1); a simulated store simulates its mirror images instead
-    return read_dyna(path, body, max_frames=max_frames, device=device, mirror=True, progress=progress), body
+    return read_dyna(path, body, max_frames=max_frames, device=device, mirror=mirror, progress=progress), body
 
 
 def run_train_softtissue(*, data: str, body: str | None, out: Path, device: str, time_budget: float | None,
@@ -49,7 +50,7 @@ def run_train_softtissue(*, data: str, body: str | None, out: Path, device: str,
                          pose_epochs: int | None, ae_epochs: int | None, reg_epochs: int | None,
                          ae_latent: int | None, seed: int | None, pose_input: str | None = None,
                          motion_transfer: bool | None = None, base: str | None = None,
-                         stage_budget: float | None = None, echo,
+                         stage_budget: float | None = None, mirror: bool = True, echo,
                          progress_factory) -> None:
     from simgen.learn.softtissue.train import SoftTissueConfig, train_softtissue
 
@@ -60,7 +61,7 @@ def run_train_softtissue(*, data: str, body: str | None, out: Path, device: str,
         raise InputError(f"--max-frames must be at least 1, got {max_frames}")
     progress, update = progress_factory(f"reading {data}", 1)
     with progress:
-        dataset, model_body = load_softtissue_source(data, body, max_frames=max_frames, device=device,
+        dataset, model_body = load_softtissue_source(data, body, max_frames=max_frames, device=device, mirror=mirror,
                                                      progress=lambda done, total: update(done, total))
     if test_motions is None:
         # A store's own split (its spec's test_motions, else the library's test clips) by default.
@@ -88,7 +89,7 @@ def run_eval_softtissue(*, models: str, data: str, body: str | None, out: Path, 
     folders = [m for part in models.replace(",", " ").split() for m in [part] if m]
     progress, update = progress_factory(f"reading {data}", 1)
     with progress:
-        dataset, model_body = load_softtissue_source(data, body, max_frames=max_frames, device=device,
+        dataset, model_body = load_softtissue_source(data, body, max_frames=max_frames, device=device, mirror=mirror,
                                                      progress=lambda done, total: update(done, total))
     report = evaluate_softtissue(folders, dataset, out, body=model_body, device=device, timing_frames=timing_frames)
     for m in report["models"]:

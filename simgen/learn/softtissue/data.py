@@ -186,7 +186,8 @@ def mirror_vertex_map(template) -> np.ndarray:
     if dist.max() > MIRROR_TOLERANCE or not np.array_equal(idx[idx], np.arange(len(v))):
         raise InputError(f"the body's template is not left-right symmetric (a reflected vertex lies "
                          f"{1000 * dist.max():.1f} mm from the nearest vertex, tolerance "
-                         f"{1000 * MIRROR_TOLERANCE:.0f} mm): its sequences cannot be mirrored")
+                         f"{1000 * MIRROR_TOLERANCE:.0f} mm): its sequences cannot be mirrored (train with "
+                         f"--no-mirror)")
     return idx.astype(np.int64)
 
 

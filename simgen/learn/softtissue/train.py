@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import io
 import json
+import shutil
 import time
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
@@ -441,6 +442,8 @@ def train_softtissue(data: SoftTissueData, out: str | Path, *, body, config: Sof
         _reopen(prog, config, folder)
     elif not config.base:
         run.nets["soft_ae"].init_pca(pca_frames([s.displacements for s in run.train.sequences]))
+    if state is None:   # a fresh run: subject regressors kept by an earlier one played its autoencoders' codes
+        shutil.rmtree(folder / "transfer", ignore_errors=True)
     ae_train = _autoencoder_train(_base_folder(config.base)) if config.base else [s.name for s in run.train.sequences]
     split = {"test_motions": config.held_out()[0], "test_subjects": config.held_out()[1],
              "train": [s.name for s in run.train.sequences], "autoencoder_train": ae_train,
@@ -467,7 +470,7 @@ def train_softtissue(data: SoftTissueData, out: str | Path, *, body, config: Sof
                 "method": "SoftSMPL", "stage": k, "source": data.source, "split": split, "config": asdict(config),
                 "fps": run.train.sequences[0].fps, "loss": prog["losses"].get(k), "epochs": prog["done"].get(k),
                 "closed_at_budget": k in prog.get("closed", []),
-                **({"motion_transfer": run.transfer} if k == "regressor" and run.transfer else {})})
+                **({"motion_transfer": prog["transfer"]} if k == "regressor" and prog.get("transfer") else {})})
 
     try:
         while prog["stage"] < len(STAGES):
@@ -483,6 +486,7 @@ def train_softtissue(data: SoftTissueData, out: str | Path, *, body, config: Sof
                 opt_state = None
             if stage == "regressor":
                 run.prepare_regressor(config, folder)
+                prog["transfer"] = run.transfer
             batch = {"pose_ae": config.pose_batch, "soft_ae": config.ae_batch, "regressor": config.reg_batch}[stage]
             n = run.n_items(stage)
             batches = (n + batch - 1) // batch

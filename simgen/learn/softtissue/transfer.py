@@ -11,9 +11,10 @@ autoencoder (section 3.3.1), which is what makes A's motion B's to play.
 
 A simulated store (``simgen dataset generate softtissue``) already has every shape perform every
 clip, so nothing is missing and nothing is transferred; Dyna's subjects each performed a subset of
-the motions. The subject regressors are trained once per run, with the run's regressor settings
-(epochs, batch, learning rate, seed), and kept in OUT/softtissue/transfer/<subject>/ so that a
-resumed run uses the same ones.
+the motions. The subject regressors are trained with the run's regressor settings (epochs, batch,
+learning rate, seed) on the run's frozen autoencoders and kept in OUT/softtissue/transfer/<subject>/:
+a resumed run uses them while those settings hold, and a fresh run (or ``--restart``) starts the
+folder over.
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ from pathlib import Path
 
 import torch
 
-from simgen.learn.checkpoint import load_model, save_model
+from simgen.learn.checkpoint import load_model, read_config, save_model
 from simgen.learn.softtissue.data import SoftTissueData, SoftTissueSequence
 from simgen.learn.softtissue.models import SoftTissueRegressor, pad_sequences, regression_loss
 
@@ -83,17 +84,19 @@ def transferred_items(train: SoftTissueData, encoded, new_regressor, *, epochs: 
     index = {s.name: i for i, s in enumerate(train.sequences)}
     items, report = [], {}
     for subject, sources in missing.items():
-        own = [encoded(index[s.name]) for s in train.sequences if s.subject == subject]
+        names = [s.name for s in train.sequences if s.subject == subject]
+        own = [encoded(index[n]) for n in names]
         where = Path(folder) / subject
-        if (where / "config.json").is_file():
-            regressor, loss = load_model(where, identity=identity, device=own[0][0].device), None
-        else:
+        made = {"method": "SoftSMPL motion transfer (section 3.3.2)", "subject": subject, "epochs": epochs,
+                "batch": batch, "lr": lr, "seed": seed, "sequences": names}
+        kept = read_config(where).get("training", {}) if (where / "config.json").is_file() else {}
+        if kept and {k: kept.get(k) for k in made} == made:
+            regressor, loss = load_model(where, identity=identity, device=own[0][0].device), kept.get("loss")
+        else:   # none yet, or one made with other settings (more epochs on a resumed run)
             torch.manual_seed(seed)
             regressor = new_regressor()
             loss = fit_regressor(regressor, own, epochs=epochs, batch=batch, lr=lr, seed=seed)
-            save_model(regressor, where, identity=identity, training={
-                "method": "SoftSMPL motion transfer (section 3.3.2)", "subject": subject, "epochs": epochs,
-                "loss": loss, "sequences": [s.name for s in train.sequences if s.subject == subject]})
+            save_model(regressor, where, identity=identity, training={**made, "loss": loss})
         betas = own[0][2]
         with torch.no_grad():
             for src in sources:
