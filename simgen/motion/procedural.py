@@ -45,7 +45,7 @@ from dataclasses import dataclass, field
 from typing import Callable
 
 import numpy as np
-from scipy.interpolate import CubicHermiteSpline, PchipInterpolator
+from scipy.interpolate import CubicHermiteSpline, CubicSpline, PchipInterpolator
 
 from simgen.body.model import BodyModel
 from simgen.errors import InputError
@@ -63,6 +63,8 @@ __all__ = ["PROCEDURAL_CLIPS", "make_clip", "list_procedural", "GRAVITY"]
 
 #: Gravity used for ballistic flight phases [m/s^2].
 GRAVITY = 9.81
+#: [Hz] the grid on which a clip's pelvis height is computed where it filters over time
+HEIGHT_RATE = 240.0
 
 # SMPL joint indices used here.
 _PELVIS, _L_HIP, _R_HIP, _SPINE1, _L_KNEE, _R_KNEE, _SPINE2, _L_ANKLE, _R_ANKLE, _SPINE3 = range(10)
@@ -256,6 +258,9 @@ class _Spec:
     feet: tuple = ()  # (_Foot left, _Foot right)
     # Fraction of the rest hip-ankle distance (scalar or (T,)) at which an out-of-reach foot hangs.
     hang_reach: float | np.ndarray = 1.0
+    # The pelvis height depends on neighbouring times (a filter over samples): the builder takes it
+    # from the spec evaluated on a fixed grid of HEIGHT_RATE, so a clip is the same at every fps.
+    height_from_grid: bool = False
 
 
 class _Rig:
@@ -589,22 +594,34 @@ def _moved_foot(rig: _Rig, side: int, t, *, steps=(), pitch=None, yaw=None, grou
                  lift=lift)
 
 
-def _fit_height(rig: _Rig, t, nominal, root_xz, root_rot, feet, env, *, reach=0.997, tau=0.008):
-    """Pelvis height [m], shape (T,): the nominal height, lowered smoothly wherever a foot target
-    would otherwise be out of reach (so planted feet stay planted and the knees keep a little
-    flexion). env in [0, 1] fades the constraint in, so a clip at rest keeps the rest height."""
-    limits = [np.asarray(nominal, dtype=np.float64)]
-    r = 1.0 - (1.0 - reach) * env
-    for side, foot in enumerate(feet):
-        limits.append(rig.reach_height(side, root_xz, root_rot, rig.ankle_target(side, foot), reach=r))
-    # A soft minimum whose softness fades with env, and the plain minimum (the rest height when
-    # standing still) where env is 0.
-    v = np.stack(limits)
-    m = v.min(axis=0)
-    tau_t = tau * np.asarray(env, dtype=np.float64)
-    safe = np.where(tau_t > 0.0, tau_t, 1.0)
-    soft = m - safe * np.log(np.sum(np.exp(-(v - m) / safe), axis=0))
-    return np.where(tau_t > 0.0, soft, m)
+def _fit_height(rig: _Rig, t, nominal, root_xz, root_rot, feet, env, *, reach=0.997, window=0.2):
+    """Pelvis height [m], shape (T,): the nominal height, lowered wherever a foot target would
+    otherwise be out of reach (so planted feet stay planted and the knees keep a little flexion),
+    by a smooth envelope of what the feet need rather than the need itself.
+
+    The need d(t) = max(nominal - reach height, 0) rises as fast as a foot moves away, and following
+    it can drop the pelvis faster than gravity could (BENCHMARKS.md, "Procedural clips"). Here
+    d is first widened to its running maximum over +-``window`` [s] and then averaged with a
+    Gaussian truncated at that window: the average of values that each are at least d(t) is at
+    least d(t), so the feet stay in reach, and the pelvis starts down before the foot needs it.
+    env in [0, 1] fades the constraint and the early start in, so a clip at rest keeps the rest
+    height.
+    t: times [s], shape (T,), evenly spaced."""
+    from scipy.ndimage import maximum_filter1d
+
+    nominal = np.asarray(nominal, dtype=np.float64)
+    r = 1.0 - (1.0 - reach) * np.asarray(env, dtype=np.float64)
+    limit = np.min([rig.reach_height(side, root_xz, root_rot, rig.ankle_target(side, foot), reach=r)
+                    for side, foot in enumerate(feet)], axis=0)
+    need = np.maximum(nominal - limit, 0.0)
+    if len(t) < 2 or not need.any():
+        return nominal - need
+    w = max(1, int(round(window / float(t[1] - t[0]))))
+    wide = maximum_filter1d(need, size=2 * w + 1, mode="nearest")
+    kernel = np.exp(-0.5 * (np.arange(-w, w + 1) / (0.5 * w)) ** 2)
+    smooth = np.convolve(np.pad(wide, w, mode="edge"), kernel / kernel.sum(), mode="valid")
+    # the early start fades in with env like the need itself, so frame 0 stays the rest pose
+    return nominal - np.maximum(np.asarray(env, dtype=np.float64) * smooth, need)
 
 
 def _walk_height(rig: _Rig, t, plan: "_GaitPlan", root_xz_at, root_rot_at, env, nominal_at, *, reach=0.997,
@@ -613,8 +630,8 @@ def _walk_height(rig: _Rig, t, plan: "_GaitPlan", root_xz_at, root_rot_at, env, 
     dip per double support, as deep as the feet need there, so the pelvis is lowest while both feet
     are down and moves with the gait's rhythm.
 
-    The reach limit alone (:func:`_fit_height`) follows the landing foot's descent, so the pelvis
-    would drop within a frame or two at each heel strike. Here the limit is sampled at
+    The reach limit alone follows the landing foot's descent, so the pelvis would drop within a
+    frame or two at each heel strike. Here the limit is sampled at
     ``rate`` [Hz]; a cubic with flat keys at the limit's lowest point between each two mid-stances
     (one per double support) and halfway between those goes down to the limit there, and each key
     is deepened by what still sticks out near it until the curve stays ``margin`` [m] (faded in with
@@ -829,7 +846,8 @@ def _stance_spec(rig: _Rig, t, feet, *, dx=0.0, dy=0.0, dz=0.0, yaw=0.0, tilt=0.
     env = _ease(t, 0.0, 0.6) if env is None else env
     y = _fit_height(rig, t, rig.pelvis_height + f(dy), root_xz, root_rot, feet, env, reach=reach)
     root_pos = np.stack([root_xz[:, 0], y, root_xz[:, 1]], axis=-1)
-    return _Spec(t=t, root_pos=root_pos, root_rot=root_rot, local=local or {}, feet=tuple(feet))
+    return _Spec(t=t, root_pos=root_pos, root_rot=root_rot, local=local or {}, feet=tuple(feet),
+                 height_from_grid=True)
 
 
 def _ballistic_spec(rig: _Rig, t, *, y_keys, feet_at, dx_at, dz_at, tilt_at, yaw_at=None, roll_at=None,
@@ -908,8 +926,10 @@ def _jump(rig, t):
         return tuple(_moved_foot(rig, side, s, pitch=pitch, ground=np.stack(
             [np.zeros_like(s), tuck, zf], axis=-1)) for side in (0, 1))
 
-    y_keys = [(0.0, Y0, 0.0), (to1 - 0.55, Y0, 0.0), (to1 - 0.25, Y0 - 0.2, 0.0), ("takeoff", to1, fl1),
-              (ld1 + 0.3, Y0 - 0.17, 0.0), (ld1 + 0.85, Y0 - 0.005, 0.0), (to2 - 0.55, Y0 - 0.005, 0.0),
+    # Each countermovement sinks the pelvis over 0.4-0.45 s: a rest-to-rest cubic's largest downward
+    # acceleration is 6 depth / duration^2, which then stays under gravity's.
+    y_keys = [(0.0, Y0, 0.0), (to1 - 0.7, Y0, 0.0), (to1 - 0.25, Y0 - 0.2, 0.0), ("takeoff", to1, fl1),
+              (ld1 + 0.3, Y0 - 0.17, 0.0), (ld1 + 0.8, Y0 - 0.005, 0.0),
               (to2 - 0.25, Y0 - 0.22, 0.0), ("takeoff", to2, fl2), (ld2 + 0.32, Y0 - 0.2, 0.0),
               (ld2 + 0.9, Y0, 0.0)]
     swing = _track(t, [(0.0, 0.0), (to1 - 0.55, 0.0), (to1 - 0.22, -50 * _DEG), (to1 + 0.1, 150 * _DEG),
@@ -1066,7 +1086,7 @@ def _kick(rig, t):
     kick = ext_r + ext_l
     local.update(_spine(t, flex=-8 * _DEG * kick, side=-6 * _DEG * shift))
     local.update(_head(t, flex=6 * _DEG * kick))
-    return _stance_spec(rig, t, feet, dx=0.075 * shift, dy=-0.03 * np.abs(shift), tilt=-10 * _DEG * kick,
+    return _stance_spec(rig, t, feet, dx=0.075 * shift, dy=-0.03 * shift**2, tilt=-10 * _DEG * kick,
                         roll=3 * _DEG * shift, local=local)
 
 
@@ -1204,7 +1224,12 @@ def _builder(spec_fn: Callable, duration: float, name: str) -> Callable:
             betas = body.check_betas(betas)[0]
         t = np.arange(int(round(duration * fps)) + 1) / fps
         rig = _Rig(body, betas)
-        poses, trans = _solve(rig, spec_fn(rig, t))
+        spec = spec_fn(rig, t)
+        if spec.height_from_grid:
+            # a fixed grid that covers every fps's last frame (at most half a frame past duration)
+            grid = np.arange(int(round((duration + 0.25) * HEIGHT_RATE)) + 1) / HEIGHT_RATE
+            spec.root_pos[:, 1] = CubicSpline(grid, spec_fn(rig, grid).root_pos[:, 1])(t)
+        poses, trans = _solve(rig, spec)
         meta = {"source": "procedural", "generator": f"simgen.motion.procedural:{name}"}
         if betas is not None:
             meta["betas"] = [float(b) for b in betas]
