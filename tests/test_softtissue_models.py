@@ -345,6 +345,10 @@ def test_cli_trains_and_resumes(body, tmp_path):
     assert [(r["stage"], r["epoch"]) for r in rows][-3:] == [("regressor", "1"), ("regressor", "2"),
                                                              ("regressor", "3")]
     assert (out / "softtissue" / "regressor" / "model.pt").is_file()
+    evaluated = runner.invoke(app, ["eval", "softtissue", "--models", str(out), "--data", "synthetic", "--body",
+                                    str(body_file), "--max-frames", "8", "--out", str(tmp_path / "eval")])
+    assert evaluated.exit_code == 0, evaluated.output
+    assert (tmp_path / "eval" / "softtissue_eval.json").is_file()
 
 
 def test_split_and_data_checks(data):

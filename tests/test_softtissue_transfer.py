@@ -15,15 +15,8 @@ from simgen.errors import InputError
 from simgen.learn.softtissue.data import (SoftTissueData, mirror_vertex_map, synthetic_softtissue_data,
                                           with_mirrored)
 
-from test_softtissue_models import _tiny_body, _tiny_config
-
-
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+# _one_thread: that module's autouse fixture (one torch thread), taken into this module too
+from test_softtissue_models import _one_thread, _tiny_body, _tiny_config  # noqa: F401
 
 
 def test_a_mirrored_sequence_is_the_reflection_of_the_posed_body():

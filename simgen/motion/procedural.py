@@ -625,7 +625,7 @@ def _fit_height(rig: _Rig, t, nominal, root_xz, root_rot, feet, env, *, reach=0.
 
 
 def _walk_height(rig: _Rig, t, plan: "_GaitPlan", root_xz_at, root_rot_at, env, nominal_at, *, reach=0.997,
-                 rate=240.0, margin=0.001) -> np.ndarray:
+                 rate=HEIGHT_RATE, margin=0.001) -> np.ndarray:
     """Pelvis height of a walk [m], shape (T,): the nominal height (with its bob) minus one smooth
     dip per double support, as deep as the feet need there, so the pelvis is lowest while both feet
     are down and moves with the gait's rhythm.

@@ -89,7 +89,7 @@ def run_eval_softtissue(*, models: str, data: str, body: str | None, out: Path, 
     folders = [m for part in models.replace(",", " ").split() for m in [part] if m]
     progress, update = progress_factory(f"reading {data}", 1)
     with progress:
-        dataset, model_body = load_softtissue_source(data, body, max_frames=max_frames, device=device, mirror=mirror,
+        dataset, model_body = load_softtissue_source(data, body, max_frames=max_frames, device=device,
                                                      progress=lambda done, total: update(done, total))
     report = evaluate_softtissue(folders, dataset, out, body=model_body, device=device, timing_frames=timing_frames)
     for m in report["models"]:

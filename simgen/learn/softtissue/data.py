@@ -26,7 +26,7 @@ import numpy as np
 from simgen.errors import InputError
 
 __all__ = ["SoftTissueSequence", "SoftTissueData", "synthetic_softtissue_data", "synthetic_displacements",
-           "soft_region_weights", "root_local_acceleration", "one_shape_per_motion", "with_mirrored",
+           "soft_region_weights", "root_local_acceleration", "one_shape_per_motion", "clip_of", "with_mirrored",
            "mirror_vertex_map"]
 
 MIRROR_TOLERANCE = 2e-3   # [m] largest distance of a reflected template vertex from its mirror vertex
@@ -159,6 +159,11 @@ class SoftTissueData:
         return train, {k: v for k, v in groups.items() if v.sequences}
 
 
+def clip_of(s: SoftTissueSequence) -> tuple[str, bool]:
+    """The clip a sequence plays, (motion, mirrored): what subjects share or lack."""
+    return s.motion, bool(s.meta.get("mirrored", False))
+
+
 def one_shape_per_motion(data: "SoftTissueData") -> "SoftTissueData":
     """The sequences a capture without motion transfer would have (thesis section 3.3.2's ablation): each
     clip, a (motion, mirrored) pair, performed by one subject only, the i-th clip in sorted order by the
@@ -167,7 +172,7 @@ def one_shape_per_motion(data: "SoftTissueData") -> "SoftTissueData":
     subjects = data.subjects()
     have: dict[tuple, dict] = {}
     for s in data.sequences:
-        have.setdefault((s.motion, bool(s.meta.get("mirrored", False))), {})[s.subject] = s.name
+        have.setdefault(clip_of(s), {})[s.subject] = s.name
     keep = set()
     for i, clip in enumerate(sorted(have)):
         order = subjects[i % len(subjects):] + subjects[:i % len(subjects)]

@@ -24,14 +24,10 @@ from pathlib import Path
 import torch
 
 from simgen.learn.checkpoint import load_model, read_config, save_model
-from simgen.learn.softtissue.data import SoftTissueData, SoftTissueSequence
+from simgen.learn.softtissue.data import SoftTissueData, SoftTissueSequence, clip_of
 from simgen.learn.softtissue.models import SoftTissueRegressor, pad_sequences, regression_loss
 
 __all__ = ["missing_clips", "fit_regressor", "transferred_items"]
-
-
-def _clip(s: SoftTissueSequence) -> tuple[str, bool]:
-    return s.motion, bool(s.meta.get("mirrored", False))
 
 
 def missing_clips(data: SoftTissueData) -> dict[str, list[SoftTissueSequence]]:
@@ -39,7 +35,7 @@ def missing_clips(data: SoftTissueData) -> dict[str, list[SoftTissueSequence]]:
     from the first subject in sorted order that performs it; subjects that lack nothing are left out."""
     by_clip: dict[tuple, dict[str, SoftTissueSequence]] = {}
     for s in data.sequences:
-        by_clip.setdefault(_clip(s), {}).setdefault(s.subject, s)
+        by_clip.setdefault(clip_of(s), {}).setdefault(s.subject, s)
     out: dict[str, list[SoftTissueSequence]] = {}
     for subject in data.subjects():
         lacks = [have[min(have)] for clip, have in sorted(by_clip.items()) if subject not in have]
@@ -102,6 +98,6 @@ def transferred_items(train: SoftTissueData, encoded, new_regressor, *, epochs: 
             for src in sources:
                 gamma = encoded(index[src.name])[0]
                 items.append((gamma, regressor(gamma[None], betas[None])[0], betas))
-        report[subject] = {"clips": [f"{m}{'_mirror' if mirrored else ''}" for m, mirrored in map(_clip, sources)],
+        report[subject] = {"clips": [f"{m}{'_mirror' if mirrored else ''}" for m, mirrored in map(clip_of, sources)],
                            "loss": loss}
     return items, report
