@@ -63,7 +63,7 @@ class SnugConfig:
     bounds and doc (:func:`simgen.settings.setting`).
 
     physics: a dataset preset name (default "thesis-tshirt": its material, contact penalty and fps,
-    so the loss is the energy the datasets' simulation minimises) or "snug" (thesis 5.3.1: cotton,
+    so the loss is the energy the datasets' simulation minimises) or "snug" (thesis 5.3.1: its cotton (preset snug_cotton),
     k_collision = 250 J/m^3, margin 2 mm, flat rest angle; :func:`resolve_physics`). The five term
     switches are the ablations of thesis Table 5.2 (a switched-off term is still computed and
     logged, without gradient). inertia_start "skip" scores frame 2 of each 3-frame window,
@@ -131,7 +131,7 @@ def resolve_physics(source: str, garment) -> SnugPhysics:
 
     source: a preset of ``simgen dataset`` (its [garment] material, else the garment's default
     material, with its overrides; its [solver.contact] and [solver.gravity] over the solver's
-    defaults; the solver's template rest angle; its fps) or "snug" (thesis 5.3.1: the "cotton"
+    defaults; the solver's template rest angle; its fps) or "snug" (thesis 5.3.1: the "snug_cotton"
     preset, i.e. 0.47 mm, 426 kg/m^3, lambda = 4.44e4 Pa, mu = 2.36e4 Pa, k_bend = 3.96e-5 N m;
     ContactParams.snug(): k = 250 J/m^3, margin 2 mm, power 3; flat rest angle; 30 fps).
     """
@@ -139,7 +139,7 @@ def resolve_physics(source: str, garment) -> SnugPhysics:
     from simgen.params import ContactParams, GravityParams
 
     if source == "snug":
-        return SnugPhysics(get_material("cotton"), ContactParams.snug(), GravityParams(), "flat", 30.0, "snug")
+        return SnugPhysics(get_material("snug_cotton"), ContactParams.snug(), GravityParams(), "flat", 30.0, "snug")
     from simgen.dataset.spec import load_spec
 
     spec = load_spec(source)
