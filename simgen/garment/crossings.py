@@ -96,6 +96,34 @@ def _crossing_kernel(meshes: wp.array(dtype=wp.uint64), x: wp.array(dtype=wp.vec
             return
 
 
+@wp.kernel(enable_backward=False)
+def _pairs_kernel(mesh: wp.uint64, x: wp.array(dtype=wp.vec3d), faces: wp.array(dtype=wp.int32, ndim=2),
+                  edges: wp.array(dtype=wp.int32, ndim=2), pad: float, count: wp.array(dtype=wp.int32),
+                  pairs: wp.array(dtype=wp.int32, ndim=2)):
+    # Thread = edge e of one copy; every triangle it crosses is appended as (e, f) while room lasts
+    # (count keeps counting past the capacity, so the caller can grow the buffer and rerun).
+    e = wp.tid()
+    i = edges[e, 0]
+    j = edges[e, 1]
+    p = x[i]
+    q = x[j]
+    pf = wp.vec3(wp.float32(p[0]), wp.float32(p[1]), wp.float32(p[2]))
+    qf = wp.vec3(wp.float32(q[0]), wp.float32(q[1]), wp.float32(q[2]))
+    query = wp.mesh_query_aabb(mesh, wp.min(pf, qf) - wp.vec3(pad), wp.max(pf, qf) + wp.vec3(pad))
+    f = int(0)
+    while wp.mesh_query_aabb_next(query, f):
+        a = faces[f, 0]
+        b = faces[f, 1]
+        c = faces[f, 2]
+        if a == i or a == j or b == i or b == j or c == i or c == j:
+            continue
+        if _segment_crosses_triangle(p, q, x[a], x[b], x[c]) != 0:
+            slot = wp.atomic_add(count, 0, 1)
+            if slot < pairs.shape[0]:
+                pairs[slot, 0] = e
+                pairs[slot, 1] = f
+
+
 class CrossingCounter:
     """Counts the crossing edges (module doc) of a triangle mesh over many frames, for one or for
     ``instances`` copies of it side by side (vertices instance by instance, as a batched
@@ -158,6 +186,24 @@ class CrossingCounter:
         self._points.assign(x.astype(np.float32))
         self._launch()
         return self._out.numpy() != 0
+
+    def pairs(self, positions) -> np.ndarray:
+        """Every (edge, triangle) that crosses at one frame: int64 (P, 2) of indices into
+        :attr:`edges` and the faces, sorted; positions [m] (V, 3) of one copy."""
+        self.crossing(positions)  # validates, loads the positions and builds or refits the BVH
+        count = wp.zeros(1, dtype=wp.int32, device=self.device)
+        capacity = max(64, 4 * int(self._per_instance.numpy()[0]))
+        while True:
+            out = wp.zeros((capacity, 2), dtype=wp.int32, device=self.device)
+            count.zero_()
+            wp.launch(_pairs_kernel, dim=len(self.edges), device=self.device,
+                      inputs=[self._meshes[0].id, self._x, self._faces, self._edges, BOX_PAD],
+                      outputs=[count, out])
+            n = int(count.numpy()[0])
+            if n <= capacity:
+                found = out.numpy()[:n].astype(np.int64)
+                return found[np.lexsort((found[:, 1], found[:, 0]))]
+            capacity = n
 
     def count(self, positions) -> np.ndarray:
         """Crossing edges per frame, int64 (T,); positions [m] (T, V, 3) (or (V, 3): one frame)."""

@@ -14,7 +14,8 @@ instances that failed it are redone from the frame's start with every substep sp
 held where they got (:meth:`FrameRunner._retry`), so no instance's result depends on its batch mates'
 failures. An instance still not finite after the last level is frozen (:meth:`FrameRunner._freeze`:
 back at the frame start, pinned, its body switched off) and recorded in ``failures``; one that is
-finite but still fails the guard is kept and counted unresolved.
+finite but still fails the guard is kept and counted unresolved. With self-contact on, an instance
+that ends the frame through itself is then untangled (:mod:`simgen.sim.tangle_repair`).
 
 A slot is active (its job steps) or idle: pinned where it is, still and without a body, so it
 takes no part in the physics (its vertices still cost the kernels their work). :meth:`FrameRunner.place`
@@ -30,6 +31,7 @@ import numpy as np
 import warp as wp
 
 from simgen.sim.batch import BatchSetup
+from simgen.sim.tangle_repair import TangleRepair
 
 __all__ = ["FrameRunner"]
 
@@ -95,6 +97,9 @@ class FrameRunner:
         self._mesh_ids = setup.collider.mesh_ids.numpy().copy()
         self.active = np.zeros(N, dtype=bool)
         self._placed: dict[int, tuple] = {}
+        # With self-contact on, cloth that ends a frame through itself is untangled before it is recorded.
+        self.repair = (TangleRepair(setup.garment.faces, len(setup.start_positions), N, dev)
+                       if cfg.solver.self_contact is not None else None)
         self._idle(range(N))
 
     @property
@@ -224,6 +229,8 @@ class FrameRunner:
             # Friction's lagged contacts at the frame's end for every instance (the retry took the
             # held instances' without their body).
             s.solver.take_contacts(s.state, s.collider)
+        if self.repair is not None:
+            self.repair(s.state, s.model.vertex_pinned, self.active)
 
     def _substeps(self, reshape: bool, level: int) -> None:
         """The frame's S substeps (each split into 2^level solver steps), as launched or captured."""

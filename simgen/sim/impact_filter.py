@@ -22,10 +22,11 @@ time of impact of Li et al. (2021)'s additive CCD:
    mean velocity, so the zone's momentum is kept and nothing inside it moves relative to anything
    else in it. Zones only grow within a substep; they are translated, not rotated, so spin inside a
    zone is lost (an inelastic impact). Pinned vertices keep their own motion and a zone with any
-   follows them. Moving zones changes the paths, so detection repeats, at most ``rounds`` times;
-   in the last round an instance that still has impacts moves as one zone, a translation of its
-   whole substep, which cannot cross itself. A start that crosses nothing then ends crossing
-   nothing.
+   follows them. Moving zones changes the paths, so detection repeats, at most ``rounds`` times.
+   The zones of the last round are moved and not checked again: a path that still crosses cloth
+   then is rare, and the frame's end untangles it (:mod:`simgen.sim.tangle_repair`). (Moving a
+   still-impacting instance as one zone, which cannot cross itself, was the first fallback: on
+   the GPU it took whole garments off their bodies, up to 34 mm inside them.)
 
 Why zones and not a per-vertex time of impact (each vertex stopped at its earliest impact, as this
 filter first did): stopping vertices in the world frame leaves them behind cloth that moves with
@@ -138,17 +139,13 @@ def impact_kernels(scalar) -> SimpleNamespace:
                 return
 
     @wp.func
-    def record(parent: wp.array(dtype=wp.int32), whole: wp.array(dtype=wp.int32), last: int, inst: int,
-               i0: int, i1: int, i2: int, i3: int, impacts: wp.array(dtype=wp.int32),
-               pending: wp.array(dtype=wp.int32)):
+    def record(parent: wp.array(dtype=wp.int32), inst: int, i0: int, i1: int, i2: int, i3: int,
+               impacts: wp.array(dtype=wp.int32), pending: wp.array(dtype=wp.int32)):
         pending[0] = 1
         wp.atomic_add(impacts, inst, 1)
-        if last != 0:
-            whole[inst] = 1
-        else:
-            union(parent, i0, i1)
-            union(parent, i0, i2)
-            union(parent, i0, i3)
+        union(parent, i0, i1)
+        union(parent, i0, i2)
+        union(parent, i0, i3)
 
     @wp.func
     def swept_box(x0: vec3, x1: vec3, offset: wp.vec3, pad: float):
@@ -174,11 +171,9 @@ def impact_kernels(scalar) -> SimpleNamespace:
     @wp.kernel(enable_backward=False, module=mod)
     def vertex_triangle(x0: wp.array(dtype=vec3), x1: wp.array(dtype=vec3), triangles: wp.array(dtype=wp.int32, ndim=2),
                         vertex_instance: wp.array(dtype=wp.int32), offsets: wp.array(dtype=wp.vec3), bvh: wp.uint64,
-                        pad: float, round_index: wp.array(dtype=wp.int32), rounds: int,
-                        parent: wp.array(dtype=wp.int32), whole: wp.array(dtype=wp.int32),
-                        impacts: wp.array(dtype=wp.int32), pending: wp.array(dtype=wp.int32)):
+                        pad: float, parent: wp.array(dtype=wp.int32), impacts: wp.array(dtype=wp.int32),
+                        pending: wp.array(dtype=wp.int32)):
         i = wp.tid()
-        last = int(round_index[0] >= rounds - 1)
         inst = vertex_instance[i]
         lo, hi = swept_box(x0[i], x1[i], offsets[inst], pad)
         query = wp.bvh_query_aabb(bvh, lo, hi)
@@ -192,16 +187,14 @@ def impact_kernels(scalar) -> SimpleNamespace:
             toi = time_of_impact(0, x0[i], x0[ia], x0[ib], x0[ic], x1[i] - x0[i], x1[ia] - x0[ia],
                                  x1[ib] - x0[ib], x1[ic] - x0[ic])
             if toi < one:
-                record(parent, whole, last, inst, i, ia, ib, ic, impacts, pending)
+                record(parent, inst, i, ia, ib, ic, impacts, pending)
 
     @wp.kernel(enable_backward=False, module=mod)
     def edge_edge(x0: wp.array(dtype=vec3), x1: wp.array(dtype=vec3), edges: wp.array(dtype=wp.int32, ndim=2),
                   vertex_instance: wp.array(dtype=wp.int32), offsets: wp.array(dtype=wp.vec3), bvh: wp.uint64,
-                  pad: float, round_index: wp.array(dtype=wp.int32), rounds: int, parent: wp.array(dtype=wp.int32),
-                  whole: wp.array(dtype=wp.int32), impacts: wp.array(dtype=wp.int32),
+                  pad: float, parent: wp.array(dtype=wp.int32), impacts: wp.array(dtype=wp.int32),
                   pending: wp.array(dtype=wp.int32)):
         e = wp.tid()
-        last = int(round_index[0] >= rounds - 1)
         a = edges[e, 0]
         b = edges[e, 1]
         inst = vertex_instance[a]
@@ -219,23 +212,17 @@ def impact_kernels(scalar) -> SimpleNamespace:
             toi = time_of_impact(1, x0[a], x0[b], x0[c], x0[d], x1[a] - x0[a], x1[b] - x0[b],
                                  x1[c] - x0[c], x1[d] - x0[d])
             if toi < one:
-                record(parent, whole, last, inst, a, b, c, d, impacts, pending)
+                record(parent, inst, a, b, c, d, impacts, pending)
 
     @wp.kernel(enable_backward=False, module=mod)
     def zone_sums(x0: wp.array(dtype=vec3), target: wp.array(dtype=vec3), target_v: wp.array(dtype=vec3),
                   mass: wp.array(dtype=scalar), pinned: wp.array(dtype=wp.int32),
-                  vertex_instance: wp.array(dtype=wp.int32),
-                  instance_root: wp.array(dtype=wp.int32), whole: wp.array(dtype=wp.int32),
                   parent: wp.array(dtype=wp.int32), zone: wp.array(dtype=wp.int32), size: wp.array(dtype=wp.int32),
                   weight: wp.array(dtype=scalar), motion: wp.array(dtype=vec3), velocity: wp.array(dtype=vec3)):
-        # Each vertex's zone (its instance's first vertex once the instance falls back to one zone)
-        # and the zone's sums: size, weight and weighted displacement and velocity. Pinned vertices
-        # count alone when the zone has any (a zone follows its kinematic vertices).
+        # Each vertex's zone and the zone's sums: size, weight and weighted displacement and
+        # velocity. Pinned vertices count alone when the zone has any (a zone follows its kinematic vertices).
         i = wp.tid()
-        inst = vertex_instance[i]
         r = find(parent, i)
-        if whole[inst] != 0:
-            r = instance_root[inst]
         zone[i] = r
         wp.atomic_add(size, r, 1)
         w = mass[i]
@@ -261,12 +248,10 @@ def impact_kernels(scalar) -> SimpleNamespace:
             v[i] = target_v[i]
 
     @wp.kernel(enable_backward=False, module=mod)
-    def start(parent: wp.array(dtype=wp.int32), whole: wp.array(dtype=wp.int32), round_index: wp.array(dtype=wp.int32),
+    def start(parent: wp.array(dtype=wp.int32), round_index: wp.array(dtype=wp.int32),
               pending: wp.array(dtype=wp.int32)):
         i = wp.tid()
         parent[i] = i
-        if i < whole.shape[0]:
-            whole[i] = 0
         if i == 0:
             round_index[0] = 0
             pending[0] = 1
@@ -284,8 +269,8 @@ def impact_kernels(scalar) -> SimpleNamespace:
 
     @wp.kernel(enable_backward=False, module=mod)
     def next_round(round_index: wp.array(dtype=wp.int32), rounds: int, pending: wp.array(dtype=wp.int32)):
-        # Another round only after one that found an impact, and none after the last one (whose
-        # impacts merged their instances into one zone, which cannot impact itself).
+        # Another round only after one that found an impact, and none after the last one (what it
+        # moved is not checked again: a path through cloth left then is untangled at the frame's end).
         round_index[0] = round_index[0] + 1
         if round_index[0] >= rounds:
             pending[0] = 0
@@ -298,11 +283,10 @@ def impact_kernels(scalar) -> SimpleNamespace:
 class ImpactFilter:
     """Device buffers of the filter for one :class:`~simgen.sim.model.ClothModel` (module doc).
 
-    rounds: detection passes per substep (>= 1; impacts found by the last one merge their whole
-    instance into one zone). pad [m]: swept boxes are grown by it (float32 broad phase round-off).
-    After :meth:`apply`, per instance (I,) int32: ``impacts`` the pairs found impacting in the last
-    round that ran (0: none were left, or none were found), ``whole`` 1 where the instance moved
-    as one zone.
+    rounds: detection passes per substep (>= 1; the zones of the last one are moved and not checked
+    again). pad [m]: swept boxes are grown by it (float32 broad phase round-off). After
+    :meth:`apply`, per instance (I,) int32: ``impacts`` the pairs found impacting in the last round
+    that ran (0: none were left, or none were found).
     """
 
     def __init__(self, model, rounds: int = 4, pad: float = 1.0e-4) -> None:
@@ -312,8 +296,6 @@ class ImpactFilter:
         self.edges = wp.array(unique_edges(tris).astype(np.int32), dtype=wp.int32, device=dev)
         self.offsets = wp.array(instance_offsets(ni), dtype=wp.vec3, device=dev)
         self.impacts = wp.zeros(ni, dtype=wp.int32, device=dev)
-        self.whole = wp.zeros(ni, dtype=wp.int32, device=dev)
-        self._instance_root = wp.array(model.vertex_start[:-1].astype(np.int32), dtype=wp.int32, device=dev)
         self._parent = wp.zeros(n, dtype=wp.int32, device=dev)
         self._zone = wp.zeros(n, dtype=wp.int32, device=dev)
         self._size = wp.zeros(n, dtype=wp.int32, device=dev)
@@ -346,7 +328,7 @@ class ImpactFilter:
         wp.copy(self._target, state.positions)
         wp.copy(self._target_v, state.velocities)
         wp.launch(k.start, dim=m.num_vertices, device=m.device,
-                  inputs=[self._parent, self.whole, self._round, self._pending])
+                  inputs=[self._parent, self._round, self._pending])
         wp.capture_while(self._pending, self._one_round, x0=x0, state=state)
 
     def _one_round(self, x0, state) -> None:
@@ -360,14 +342,13 @@ class ImpactFilter:
         self.impacts.zero_()
         (tris, *_, tri_bvh), (edges, *_, edge_bvh) = self._bvhs
         common = [m.vertex_instance, self.offsets]
-        tail = [self.pad, self._round, self.rounds, self._parent, self.whole, self.impacts, self._pending]
+        tail = [self.pad, self._parent, self.impacts, self._pending]
         wp.launch(k.vertex_triangle, dim=m.num_vertices, device=m.device,
                   inputs=[x0, x, tris, *common, tri_bvh.id, *tail])
         wp.launch(k.edge_edge, dim=edges.shape[0], device=m.device, inputs=[x0, x, edges, *common, edge_bvh.id, *tail])
         zone_sums = [self._zone, self._size, self._weight, self._motion, self._velocity]
         wp.launch(k.zone_sums, dim=m.num_vertices, device=m.device, inputs=[
-            x0, self._target, self._target_v, m.vertex_mass, m.vertex_pinned, m.vertex_instance, self._instance_root,
-            self.whole, self._parent, *zone_sums])
+            x0, self._target, self._target_v, m.vertex_mass, m.vertex_pinned, self._parent, *zone_sums])
         wp.launch(k.move_zones, dim=m.num_vertices, device=m.device, inputs=[
             x0, self._target, self._target_v, m.vertex_pinned, *zone_sums, x, state.velocities])
         wp.launch(k.next_round, dim=1, device=m.device, inputs=[self._round, self.rounds, self._pending])
