@@ -44,7 +44,7 @@ def commit() -> str:
 
 def variants() -> dict:
     """Name -> (SimulationConfig overrides, SolverConfig overrides)."""
-    from simgen.params import ContactParams, FrictionParams
+    from simgen.params import ContactParams, FrictionParams, SelfContactParams
 
     return {
         "default": ({}, {}),
@@ -53,10 +53,11 @@ def variants() -> dict:
         "friction_load_cap_2": ({}, {"friction": FrictionParams(max_normal_load=2.0)}),
         "friction_eps_1e-2": ({}, {"friction": FrictionParams(smoothing_velocity=1.0e-2)}),
         "stiff_contact": ({}, {"contact": ContactParams(stiffness=1.0e5)}),
-        "interlock": ({"material": "interlock"}, {}),
+        "cotton": ({"material": "cotton"}, {}),
         "no_projection": ({}, {"project": False}),
         "preset": ({"material": "interlock"}, {"newton_iterations": 2, "strain_limit": 0.5, "constraint_rounds": 2,
-                                               "contact": ContactParams(stiffness=1.0e5), "guard_energy": False}),
+                                               "contact": ContactParams(stiffness=1.0e5), "guard_energy": False,
+                                               "self_contact": SelfContactParams()}),
     }
 
 
