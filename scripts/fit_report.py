@@ -44,7 +44,7 @@ def commit() -> str:
 
 def variants() -> dict:
     """Name -> (SimulationConfig overrides, SolverConfig overrides)."""
-    from simgen.params import ContactParams, FrictionParams, SelfContactParams
+    from simgen.params import ContactParams, FrictionParams
 
     return {
         "default": ({}, {}),
@@ -56,8 +56,7 @@ def variants() -> dict:
         "cotton": ({"material": "cotton"}, {}),
         "no_projection": ({}, {"project": False}),
         "preset": ({"material": "interlock"}, {"newton_iterations": 2, "strain_limit": 0.5, "constraint_rounds": 2,
-                                               "contact": ContactParams(stiffness=1.0e5), "guard_energy": False,
-                                               "self_contact": SelfContactParams()}),
+                                               "contact": ContactParams(stiffness=1.0e5), "guard_energy": False}),
     }
 
 

@@ -69,7 +69,10 @@ def test_solver_frame_is_a_stationary_point_of_the_incremental_potential(tmp_pat
     (to the solver's float32) although each term's gradient does not."""
     from simgen.sim import SimulationConfig, SolverConfig, simulate
 
+    # The tolerance is float32's: the residual grows with the membrane's stiffness, so the softest
+    # fabric (SNUG's cotton; the T-shirt's interlock has 4.5x its E h and 3.4x the residual) keeps it tight.
     cfg = SimulationConfig(substeps=1, relax_frames=2, ramp_frames=3, rest_frames=2, device="cpu", record_body=True,
+                           material="snug_cotton",
                            solver=SolverConfig(newton_iterations=8, cg_iterations=200, cg_tolerance=1e-6,
                                                friction=None, project=False, line_search=True, guard=False))
     path = simulate("tshirt_1k", body, "walk_fast", None, cfg, frames=6).save_npz(tmp_path / "one_step.npz")
