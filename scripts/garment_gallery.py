@@ -79,18 +79,18 @@ def render_all(data: Path, out: Path) -> None:
             labels = [str(s) for s in d["labels"]]
         if path.stem.startswith("rest_"):
             name = path.stem[len("rest_"):]
-            for view, azimuth, axis in (("front", 0.0, 0), ("side", 90.0, 2)):
+            for view, azimuth, axis in (("front", 0.0, (0.75, 0.0, 0.0)), ("side", 90.0, (0.0, 0.0, -0.75))):
                 _render(out / f"garment_rest_{name}_{view}.jpg", cloth, body, faces, body_faces, labels,
                         azimuth, axis, title=f"{name} after the start protocol ({view})")
         else:
-            _render(out / f"sim_{path.stem}.jpg", cloth, body, faces, body_faces, labels, 20.0, 0,
+            _render(out / f"sim_{path.stem}.jpg", cloth, body, faces, body_faces, labels, 20.0, (0.75, 0.0, 0.0),
                     title=path.stem.replace("_", " ", 1))
         print(path.stem)
 
 
-def _render(path: Path, cloth, body, faces, body_faces, labels, azimuth: float, axis: int, title: str) -> None:
-    """Panels side by side along world ``axis`` (each centred on its body's pelvis height), one
-    picture from ``azimuth`` [deg], written as a JPEG."""
+def _render(path: Path, cloth, body, faces, body_faces, labels, azimuth: float, step, title: str) -> None:
+    """Panels side by side, panel k moved by k ``step`` [m] (3,) after centring its body on the
+    vertical axis, in one picture from ``azimuth`` [deg], written as a JPEG."""
     import tempfile
 
     from PIL import Image
@@ -101,15 +101,15 @@ def _render(path: Path, cloth, body, faces, body_faces, labels, azimuth: float, 
     for k in range(len(cloth)):
         shift = -body[k].mean(axis=0)
         shift[1] = 0.0
-        shift[axis] += 0.75 * k
+        shift += k * np.asarray(step)
         meshes += [(body[k] + shift, body_faces, "body"), (cloth[k] + shift, faces, "garment")]
         boxes.append(np.vstack([body[k] + shift, cloth[k] + shift]))
     points = np.vstack(boxes)
     camera = default_camera(np.stack([points.min(0), points.max(0)]), aspect=SIZE[0] / SIZE[1],
                             azimuth=azimuth, elevation=8.0)
-    legend = {"panels": ", ".join(labels)}
+    caption = f"{title}\nleft to right: {', '.join(labels)}"
     with tempfile.TemporaryDirectory() as tmp:
-        png = render_frame(Path(tmp) / "p.png", meshes, camera=camera, size=SIZE, title=title, legend=legend)
+        png = render_frame(Path(tmp) / "p.png", meshes, camera=camera, size=SIZE, title=caption)
         path.parent.mkdir(parents=True, exist_ok=True)
         Image.open(png).convert("RGB").save(path, quality=82)
 
