@@ -119,3 +119,13 @@ def test_softtissue_runtime_times_a_trained_folder(tmp_path):
     assert result["frames"] == 6 and result["commit"] and result["machine"]["cpus"] >= 1
     assert row["streamed_ms_per_frame"][0] > 0 and row["sequence_ms_per_frame"][0] > 0
     assert row["decoder_ms"] > 0 and row["parameters"]["regressor"] > 0
+
+
+def test_untangle_replay_untangles_the_coarse_collar_fold(tmp_path):
+    """The coarse T-shirt's collar folds through itself in kick at beta 1 = +2 from frame 24 on
+    (no self-contact); with the previous frame as reference every tangled frame is untangled."""
+    result = run_script("untangle_replay.py", "--frames", "28", out=tmp_path / "untangle.json")
+    ref = result["with_reference"]
+    assert result["garment"] == "tshirt_1k" and ref["frames_tangled"] == result["alone"]["frames_tangled"] > 0
+    assert ref["frames_untangled"] == ref["frames_tangled"]
+    assert all(row["left"] == 0 and row["crossings"] > 0 for row in ref["frames"])

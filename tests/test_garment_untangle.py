@@ -68,6 +68,23 @@ def test_a_sleeve_pushed_through_itself_is_untangled_without_exploding():
     assert np.all(np.isfinite(result.positions)) and result.max_displacement < 0.03  # the sleeve's radius is 5 cm
 
 
+def test_with_a_reference_the_vertex_that_left_its_side_goes_back():
+    """Two sheets 1 cm apart; one vertex of the upper sheet dragged 2 cm down through the lower
+    one (a single-frame slip): with the clean state as reference, one round moves that vertex back
+    above the lower sheet (and at most a neighbour of the lower sheet that its spike's tilted
+    triangles now put on their other side)."""
+    x, f, upper = bumped_sheets(depth=0.0)
+    clean = x.copy()
+    k = upper + int(np.argmin(np.linalg.norm(x[upper:, [0, 2]] - 0.5, axis=1)))
+    x[k, 1] -= 0.02
+    assert brute_force(x, f) > 0 and brute_force(clean, f) == 0
+    result = untangle(x, f, reference=clean)
+    assert result.untangled and result.rounds == 1 and result.moved <= 2
+    assert 0.0 < result.positions[k, 1] < 0.01 and brute_force(result.positions, f) == 0
+    with pytest.raises(Exception, match="reference"):
+        untangle(x, f, reference=clean[:-1])
+
+
 def test_clean_cloth_is_left_exactly_as_it_is_and_bad_input_is_refused():
     _, flat, _, f = sleeves()
     result = untangle(flat, f)
@@ -92,7 +109,7 @@ def test_frame_end_repair_untangles_busy_instances_only():
     velocity[:, 1] = -1.0   # everything moving down, the way the bump went through
     state.velocities.assign(velocity.astype(np.float32))
     repair = TangleRepair(f, len(x), 2, "cpu")
-    moved = repair(state, model.vertex_pinned, np.array([True, False]))
+    moved = repair(state, model.vertex_pinned, np.array([True, False]), reference=None)
     assert moved == [0] and repair.repaired.tolist() == [1, 0] and repair.left.tolist() == [0, 0]
     out, v = state.positions.numpy().astype(np.float64), state.velocities.numpy()
     assert brute_force(out[:len(x)], f) == 0 and brute_force(out[len(x):], f) == brute_force(x, f)

@@ -9,14 +9,17 @@ cloth", SIGGRAPH 2003) with the contour-shrinking moves of intersection contour 
 
 1. Find every crossing pair: an edge of the garment through a triangle of the garment that shares
    no vertex with it (:mod:`simgen.garment.crossings`, exact in float64).
-2. Cut the garment's edge graph at the crossing edges. Where the intersection contour is a closed
-   loop on a layer, the cut separates the region it encloses from the rest of the garment; the
-   smaller side is the part that has gone through (BWK's rule: the region bounded by the contour).
+2. Cut the garment's edge graph along the intersection contour: at the crossing edges and the
+   edges of the triangles they cross. Where the contour is a closed loop on a layer (or ends where
+   two layers are joined, as at a sleeve's fold), the cut separates what it encloses from the rest
+   of the garment; the smaller side is the part that has gone through (BWK's rule).
 3. For each crossing pair, move the crossing edge's vertex on the smaller side (the one nearer to
-   the triangle's plane where the cut separates nothing: a contour that ends on a boundary)
-   through the triangle's plane to the other vertex's side, ``margin`` beyond it; a pinned vertex
-   stays and the triangle's free vertices move the other way instead. Moves requested of one
-   vertex by several pairs are averaged.
+   the triangle's plane where the cut separates nothing: a local fold, a contour that ends on a
+   boundary) through the triangle's plane to the other vertex's side, ``margin`` beyond it. With a
+   reference (an earlier untangled state, as a simulation's frame start), a pair whose edge lay
+   wholly on one side of the triangle then moves the vertex that has left that side: history
+   decides where topology cannot. A pinned vertex stays and the triangle's free vertices move the
+   other way instead. Moves requested of one vertex by several pairs are averaged.
 4. Repeat until no edge crosses. Each round pushes the contour's inner rim back through, so the
    contour shrinks and closes, as in ICM.
 
@@ -80,18 +83,28 @@ def _cut(edges: np.ndarray, faces: np.ndarray, pairs: np.ndarray) -> np.ndarray:
     return cut
 
 
+def _plane_distances(x: np.ndarray, p, q, a, b, c) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Unit normals (P, 3) of triangles (a, b, c) and the signed distances [m] (P,) of p and q to
+    their planes, at positions x [m] (V, 3)."""
+    n = np.cross(x[b] - x[a], x[c] - x[a])
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
+    return n, np.einsum("ij,ij->i", x[p] - x[a], n), np.einsum("ij,ij->i", x[q] - x[a], n)
+
+
 def _moves(x: np.ndarray, faces: np.ndarray, edges: np.ndarray, pairs: np.ndarray, free: np.ndarray,
-           margin: float) -> tuple[np.ndarray, np.ndarray]:
+           margin: float, reference: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
     """Summed displacement [m] (V, 3) and number of requests (V,) of one round (module doc, step 3)."""
     _, size = _sides(edges, _cut(edges, faces, pairs), len(x))
     p, q = edges[pairs[:, 0], 0], edges[pairs[:, 0], 1]
     a, b, c = (faces[pairs[:, 1], k] for k in range(3))
-    n = np.cross(x[b] - x[a], x[c] - x[a])
-    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
-    dp = np.einsum("ij,ij->i", x[p] - x[a], n)
-    dq = np.einsum("ij,ij->i", x[q] - x[a], n)
-    # The vertex that went through: on the smaller side of the cut, else the one nearer the plane.
+    n, dp, dq = _plane_distances(x, p, q, a, b, c)
+    # The vertex that went through: on the smaller side of the cut, else the one nearer the plane;
+    # with a reference, the one that is no longer on the side where both lay then.
     p_in = np.where(size[p] != size[q], size[p] < size[q], np.abs(dp) <= np.abs(dq))
+    if reference is not None:
+        _, rp, rq = _plane_distances(reference, p, q, a, b, c)
+        known = np.sign(rp) * np.sign(rq) > 0
+        p_in = np.where(known, np.sign(dp) != np.sign(rp), p_in)
     inside = np.where(p_in, p, q)
     d_in, d_out = np.where(p_in, dp, dq), np.where(p_in, dq, dp)
     depth = np.sign(d_out) * margin - d_in                     # signed travel along n to the far side
@@ -108,20 +121,26 @@ def _moves(x: np.ndarray, faces: np.ndarray, edges: np.ndarray, pairs: np.ndarra
     return total, hits
 
 
-def untangle(positions, faces, *, pinned=None, margin: float = 5.0e-4, max_rounds: int = 200,
+def untangle(positions, faces, *, pinned=None, reference=None, margin: float = 5.0e-4, max_rounds: int = 200,
              device: str = "cpu", counter: CrossingCounter | None = None) -> UntangleResult:
     """Untangle a garment's positions (module doc).
 
     positions [m] (V, 3); faces (F, 3) int; pinned: bool (V,) vertices that must not move (default
-    none); margin [m]: how far beyond the other layer a moved vertex lands; max_rounds: the most
-    detect-and-move rounds; device: where the crossings are found ("cpu", "cuda:0"); counter: a
-    :class:`CrossingCounter` of these faces to reuse. Returns an :class:`UntangleResult`.
+    none); reference [m] (V, 3): an earlier untangled state of the same cloth (a simulation's frame
+    start), whose sides decide which vertex went through wherever both ends of a crossing edge lay
+    on one side of the triangle then; margin [m]: how far beyond the other layer a moved vertex
+    lands; max_rounds: the most detect-and-move rounds; device: where the crossings are found
+    ("cpu", "cuda:0"); counter: a :class:`CrossingCounter` of these faces to reuse. Returns an
+    :class:`UntangleResult`.
     """
     x = np.array(positions, dtype=np.float64)
     f = np.asarray(faces)
     if x.ndim != 2 or x.shape[1] != 3 or not np.all(np.isfinite(x)):
         raise InputError(f"positions must be finite with shape (V, 3), got {x.shape}")
     free = np.ones(len(x), dtype=bool) if pinned is None else ~np.asarray(pinned, dtype=bool)
+    ref = None if reference is None else np.asarray(reference, dtype=np.float64)
+    if ref is not None and ref.shape != x.shape:
+        raise InputError(f"reference must have the positions' shape {x.shape}, got {ref.shape}")
     if free.shape != (len(x),):
         raise InputError(f"pinned must have shape ({len(x)},), got {free.shape}")
     if not margin > 0.0 or max_rounds < 1:
@@ -132,7 +151,7 @@ def untangle(positions, faces, *, pinned=None, margin: float = 5.0e-4, max_round
     before = len(np.unique(pairs[:, 0]))
     rounds = 0
     while len(pairs) and rounds < max_rounds:
-        total, hits = _moves(x, f, counter.edges, pairs, free, margin)
+        total, hits = _moves(x, f, counter.edges, pairs, free, margin, ref)
         moving = hits > 0
         x[moving] += total[moving] / hits[moving, None]
         rounds += 1

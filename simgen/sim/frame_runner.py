@@ -230,7 +230,7 @@ class FrameRunner:
             # held instances' without their body).
             s.solver.take_contacts(s.state, s.collider)
         if self.repair is not None:
-            self.repair(s.state, s.model.vertex_pinned, self.active)
+            self.repair(s.state, s.model.vertex_pinned, self.active, reference=self._frame_start.positions)
 
     def _substeps(self, reshape: bool, level: int) -> None:
         """The frame's S substeps (each split into 2^level solver steps), as launched or captured."""

@@ -4,8 +4,8 @@ Self-contact keeps layers apart and the impact filter stops most paths through c
 (:mod:`simgen.sim.impact_filter`), but a substep can still end tangled (a slip of the solver or the
 body projection). At the end of every frame, :class:`TangleRepair` counts each busy instance's
 crossing edges on the device (:mod:`simgen.garment.crossings`) and, for the few that have some,
-untangles their positions (:func:`simgen.garment.untangle.untangle`: global intersection analysis,
-on the host) before the frame is recorded. A moved vertex keeps its velocity except the part that
+untangles their positions (:func:`simgen.garment.untangle.untangle`, on the host, with the frame's
+start as the reference that tells which vertex went through) before the frame is recorded. A moved vertex keeps its velocity except the part that
 pointed back through the layer it was moved out of, so the next substep does not push it straight
 back. ``repaired`` counts, per instance, the frames that needed it; ``left`` the crossing edges
 that the rounds could not remove at the last frame.
@@ -36,19 +36,22 @@ class TangleRepair:
         self.repaired = np.zeros(self.instances, dtype=np.int64)
         self.left = np.zeros(self.instances, dtype=np.int64)
 
-    def __call__(self, state, pinned: wp.array, active: np.ndarray) -> list[int]:
+    def __call__(self, state, pinned: wp.array, active: np.ndarray, reference: wp.array | None = None) -> list[int]:
         """Untangle the ``active`` (bool (N,)) instances of ``state`` (positions [m], velocities
-        [m/s], (N V,) vec3) that cross themselves; ``pinned`` (N V,) int: vertices that stay.
+        [m/s], (N V,) vec3) that cross themselves; ``pinned`` (N V,) int: vertices that stay;
+        ``reference`` (N V,) vec3 [m]: the frame's start, whose sides tell which vertex went through.
         Returns the instances moved."""
         counts = self.counter.count_points(state.positions)
         todo = [k for k in np.flatnonzero(counts > 0) if active[k]]
         if not todo:
             return []
         x, v, fixed = state.positions.numpy(), state.velocities.numpy(), pinned.numpy() != 0
+        ref = None if reference is None else reference.numpy()
         V = self.num_vertices
         for k in todo:
             rows = slice(k * V, (k + 1) * V)
-            result = untangle(x[rows], self.faces, pinned=fixed[rows], counter=self.single)
+            result = untangle(x[rows], self.faces, pinned=fixed[rows], counter=self.single,
+                              reference=None if ref is None else ref[rows])
             shift = result.positions - x[rows]
             x[rows] = result.positions
             v[rows] = _drop_return_velocity(v[rows], shift)
