@@ -113,8 +113,8 @@ class SelfContactParams:
                                    doc="[m] candidate triangles are gathered within it (must exceed the thickness)")
     max_candidates: int = setting(16, low=1, doc="triangles kept per vertex, and edges per edge (the first "
                                                  "found within the radius)")
-    impact_rounds: int = setting(4, low=1, doc="detection passes of the impact filter per substep (an instance "
-                                               "still impacting in the last one moves as one zone)")
+    impact_rounds: int = setting(4, low=0, doc="detection passes of the impact filter per substep (0: no filter; "
+                                               "a frame that ends through itself is untangled at its end either way)")
 
     def __post_init__(self) -> None:
         validate(self, "self-contact")

@@ -128,3 +128,23 @@ def _two_copies(x, f):
     for _ in range(2):
         b.add_instance(x, f, "interlock")
     return b.finalize("cpu", dtype=wp.float32)
+
+
+def test_frame_end_repair_on_the_device_takes_the_frame_start_as_reference():
+    """With the frame's start (two clean sheets 1 cm apart) as reference, the device rounds put the
+    bump that went through back above the lower sheet; nothing is left for the host."""
+    from simgen.sim.tangle_repair import TangleRepair
+
+    x, f, upper = bumped_sheets(n=12)
+    clean, _, _ = bumped_sheets(depth=0.0, n=12)
+    model = _two_copies(x, f)
+    state = model.state()
+    state.positions.assign(np.vstack([x, x]).astype(np.float32))
+    state.velocities.zero_()
+    reference = wp.array(np.vstack([clean, clean]).astype(np.float32), dtype=wp.vec3, device="cpu")
+    repair = TangleRepair(f, len(x), 2, "cpu")
+    assert repair(state, model.vertex_pinned, np.array([True, True]), reference=reference) == [0, 1]
+    out = state.positions.numpy().astype(np.float64)
+    for k in range(2):
+        assert brute_force(out[k * len(x):(k + 1) * len(x)], f) == 0
+    assert repair.left.tolist() == [0, 0] and out[:upper, 1].max() == 0.0  # the lower sheet stayed

@@ -150,7 +150,34 @@ class CrossingCounter:
         self._out = wp.zeros(self.instances * len(self.edges), dtype=wp.int32, device=device)
         self._per_instance = wp.zeros(self.instances, dtype=wp.int32, device=device)
 
-    def _launch(self) -> None:
+    def load(self, points: wp.array) -> None:
+        """Take positions [m] already on the device, float32 (instances * V,) vec3: their float64
+        copy (:attr:`x64`) and every copy's BVH (:attr:`mesh_ids`), built or refit."""
+        wp.copy(self._points, points)
+        wp.launch(_to_float64, dim=len(self._x), device=self.device, inputs=[self._points], outputs=[self._x])
+        self._refit()
+
+    @property
+    def x64(self) -> wp.array:
+        """The positions last loaded, float64 (instances * V,) vec3d [m]."""
+        return self._x
+
+    @property
+    def mesh_ids(self) -> wp.array:
+        """One BVH (wp.Mesh id) per copy over the positions last loaded, (instances,) uint64."""
+        return self._mesh_ids
+
+    @property
+    def device_faces(self) -> wp.array:
+        """One copy's triangles on the device, (F, 3) int32."""
+        return self._faces
+
+    @property
+    def device_edges(self) -> wp.array:
+        """One copy's edges (:attr:`edges`) on the device, (E, 2) int32."""
+        return self._edges
+
+    def _refit(self) -> None:
         if not self._meshes:
             # A BVH is built on the first frame's positions: one built on placeholder points and
             # only refit would keep a tree that groups unrelated triangles (every query then walks it all).
@@ -160,6 +187,12 @@ class CrossingCounter:
             self._mesh_ids = wp.array([m.id for m in self._meshes], dtype=wp.uint64, device=self.device)
         for mesh in self._meshes:
             mesh.refit()
+
+    def _launch(self) -> None:
+        self._refit()
+        self._count()
+
+    def _count(self) -> None:
         self._per_instance.zero_()
         wp.launch(_crossing_kernel, dim=len(self._out), device=self.device,
                   inputs=[self._mesh_ids, self._x, self._faces, self._edges, BOX_PAD, self.num_vertices],
@@ -168,9 +201,8 @@ class CrossingCounter:
     def count_points(self, points: wp.array) -> np.ndarray:
         """Crossing edges of every copy, int64 (instances,), at positions [m] already on the device:
         float32 points (instances * V,) vec3 (e.g. a batched cloth state's positions)."""
-        wp.copy(self._points, points)
-        wp.launch(_to_float64, dim=len(self._x), device=self.device, inputs=[self._points], outputs=[self._x])
-        self._launch()
+        self.load(points)
+        self._count()
         return self._per_instance.numpy().astype(np.int64)
 
     def crossing(self, positions) -> np.ndarray:

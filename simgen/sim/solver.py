@@ -234,8 +234,8 @@ class ImplicitSolver:
         # The contact's body part rule, decided per vertex at each step's start and held through it.
         self.part_choice = wp.zeros(m.num_vertices, dtype=wp.int32, device=dev)
         self.self_contact = SelfContactSet(m, cfg.self_contact) if cfg.self_contact is not None else None
-        self.impact_filter = (ImpactFilter(m, cfg.self_contact.impact_rounds) if cfg.self_contact is not None
-                              else None)
+        self.impact_filter = (ImpactFilter(m, cfg.self_contact.impact_rounds)
+                              if cfg.self_contact is not None and cfg.self_contact.impact_rounds > 0 else None)
         self._substep_start = m.new_gradient() if self.impact_filter is not None else None
         self.strain_limiter = (StrainLimiter(m, cfg.strain_limit, cfg.strain_limit_iterations)
                                if cfg.strain_limit is not None else None)
