@@ -26,6 +26,9 @@ from simgen.garment.untangle import untangle
 MARGIN = 5.0e-4
 #: device rounds of the history rule per frame before the host's untangling takes what is left.
 DEVICE_ROUNDS = 8
+#: the host's rounds per instance and frame: a tangle they cannot remove is left to the next frame's
+#: repair (and counted in ``left``) instead of stalling the batch.
+HOST_ROUNDS = 20
 
 
 @wp.func
@@ -184,7 +187,7 @@ class TangleRepair:
         for k in todo:
             rows = slice(k * V, (k + 1) * V)
             result = untangle(x[rows], self.faces, pinned=fixed[rows], counter=self.single,
-                              reference=None if ref is None else ref[rows])
+                              reference=None if ref is None else ref[rows], max_rounds=HOST_ROUNDS)
             shift = result.positions - x[rows]
             x[rows] = result.positions
             v[rows] = _drop_return_velocity(v[rows], shift)
