@@ -17,23 +17,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import platform
-import subprocess
 import sys
 import time
 from pathlib import Path
 
-
-def _commit() -> str:
-    env = os.environ.get("SIMGEN_COMMIT")
-    if env:
-        return env
-    try:
-        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                              cwd=Path(__file__).parent, check=True).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
+from _record import commit  # scripts/_record.py (the script's own folder is on sys.path)
 
 
 def _rounded(value, digits: int = 6):
@@ -92,7 +81,7 @@ def _document(args, seeds: list[int], results: dict, seconds: float) -> dict:
     import warp as wp
 
     return {
-        "device": str(wp.get_device(args.device)), "host": platform.node(), "commit": _commit(),
+        "device": str(wp.get_device(args.device)), "host": platform.node(), "commit": commit(),
         "date": time.strftime("%Y-%m-%d"), "warp": wp.config.version,
         "settings": {"cantilever_rows": args.cantilever_rows, "cantilever_width_m": 0.025,
                      "drape_spacing_m": args.drape_spacing, "drape_seeds": seeds, "shadow_pixel_m": 1.0e-3,

@@ -45,12 +45,13 @@ import argparse
 import dataclasses
 import functools
 import json
-import subprocess
 import sys
 from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
+
+from _record import commit  # scripts/_record.py (the script's own folder is on sys.path)
 
 REPO = Path(__file__).resolve().parents[1]
 TEMPLATES = ("tshirt", "tank_top", "dress", "skirt", "pants", "shorts")
@@ -504,14 +505,6 @@ def variant_differences(full: list[dict], coarse: list[dict]) -> dict:
     return out
 
 
-def _commit() -> str:
-    try:
-        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True, text=True,
-                              check=True).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
-
-
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--garments", nargs="*", default=list(TEMPLATES), help="templates (their _1k variants too)")
@@ -522,7 +515,7 @@ def main(argv=None) -> int:
     body = body_pkg.load("open")
     bodies = {k: shaped_body(body, b) for k, b in SHAPES.items()}
     shapes = {k: body_measures(b) for k, b in bodies.items()}
-    result = {"commit": _commit(), "body": "open", "rest_pose": "T-pose (the templates' build pose)",
+    result = {"commit": commit(), "body": "open", "rest_pose": "T-pose (the templates' build pose)",
               "shapes": {k: {m: round(100 * x, 1) for m, x in v.items()} for k, v in shapes.items()},
               "units": "cm", "garments": {}, "variant_differences_cm": {}}
     for name in args.garments:

@@ -15,25 +15,14 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import platform
-import subprocess
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-
-def _commit() -> str:
-    env = os.environ.get("SIMGEN_COMMIT")
-    if env:
-        return env
-    try:
-        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                              cwd=Path(__file__).parent, check=True).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
+from _record import commit  # scripts/_record.py (the script's own folder is on sys.path)
 
 
 def report_file(path: Path, *, contact: str, device: str, plots: Path | None, body,
@@ -119,7 +108,7 @@ def main(argv=None) -> int:
 
     keys = ("strain", "bending", "gravity", "gravity_root", "inertia", "collision", "inside_share")
     doc = {
-        "device": args.device, "host": platform.node(), "commit": _commit(),
+        "device": args.device, "host": platform.node(), "commit": commit(),
         "date": time.strftime("%Y-%m-%d"), "contact": args.contact,
         "files": entries,
         "pooled": {

@@ -15,11 +15,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import subprocess
 import time
 from dataclasses import replace
 
 import numpy as np
+
+from _record import commit  # scripts/_record.py (the script's own folder is on sys.path)
 
 
 def simulate_tangled(args) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -73,8 +74,7 @@ def main() -> None:
     p.add_argument("--out", help="also write the JSON to this file")
     args = p.parse_args()
     x, faces, crossing = simulate_tangled(args)
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
-    out = {"benchmark": "untangle_replay", "device": args.device, "commit": commit, "garment": args.garment,
+    out = {"benchmark": "untangle_replay", "device": args.device, "commit": commit(), "garment": args.garment,
            "motion": args.motion, "betas": args.betas, "frames": args.frames, "vertices": int(x.shape[1]),
            "alone": replay(x, faces, crossing, False), "with_reference": replay(x, faces, crossing, True)}
     print(json.dumps(out))

@@ -29,7 +29,8 @@ import warp as wp
 from simgen.errors import InputError
 from simgen.garment.mesh import unique_edges
 
-__all__ = ["BOX_PAD", "CrossingCounter", "count_crossing_edges", "crossing_edges"]
+__all__ = ["BOX_PAD", "CrossingCounter", "count_crossing_edges", "crossing_edges", "edge_query",
+           "segment_crosses_triangle"]
 
 #: [m] padding of the float32 candidate boxes (float32 rounds a coordinate of a few metres by < 1e-6 m).
 BOX_PAD = 1.0e-5
@@ -41,7 +42,7 @@ def _orient(u: wp.vec3d, v: wp.vec3d, w: wp.vec3d, z: wp.vec3d) -> wp.float64:
 
 
 @wp.func
-def _segment_crosses_triangle(p: wp.vec3d, q: wp.vec3d, a: wp.vec3d, b: wp.vec3d, c: wp.vec3d) -> int:
+def segment_crosses_triangle(p: wp.vec3d, q: wp.vec3d, a: wp.vec3d, b: wp.vec3d, c: wp.vec3d) -> int:
     zero = wp.float64(0.0)
     sp = _orient(a, b, c, p)
     sq = _orient(a, b, c, q)
@@ -53,6 +54,14 @@ def _segment_crosses_triangle(p: wp.vec3d, q: wp.vec3d, a: wp.vec3d, b: wp.vec3d
     if (t1 > zero and t2 > zero and t3 > zero) or (t1 < zero and t2 < zero and t3 < zero):
         return 1
     return 0
+
+
+@wp.func
+def edge_query(mesh: wp.uint64, p: wp.vec3d, q: wp.vec3d, pad: float):
+    """A BVH query for the triangles whose float32 boxes meet the edge (p, q)'s box grown by pad [m]."""
+    pf = wp.vec3(wp.float32(p[0]), wp.float32(p[1]), wp.float32(p[2]))
+    qf = wp.vec3(wp.float32(q[0]), wp.float32(q[1]), wp.float32(q[2]))
+    return wp.mesh_query_aabb(mesh, wp.min(pf, qf) - wp.vec3(pad), wp.max(pf, qf) + wp.vec3(pad))
 
 
 @wp.kernel(enable_backward=False)
@@ -77,11 +86,7 @@ def _crossing_kernel(meshes: wp.array(dtype=wp.uint64), x: wp.array(dtype=wp.vec
     j = edges[e, 1] + base
     p = x[i]
     q = x[j]
-    pf = wp.vec3(wp.float32(p[0]), wp.float32(p[1]), wp.float32(p[2]))
-    qf = wp.vec3(wp.float32(q[0]), wp.float32(q[1]), wp.float32(q[2]))
-    lo = wp.min(pf, qf) - wp.vec3(pad)
-    hi = wp.max(pf, qf) + wp.vec3(pad)
-    query = wp.mesh_query_aabb(meshes[instance], lo, hi)
+    query = edge_query(meshes[instance], p, q, pad)
     f = int(0)
     crossing[tid] = 0
     while wp.mesh_query_aabb_next(query, f):
@@ -90,7 +95,7 @@ def _crossing_kernel(meshes: wp.array(dtype=wp.uint64), x: wp.array(dtype=wp.vec
         c = faces[f, 2] + base
         if a == i or a == j or b == i or b == j or c == i or c == j:
             continue
-        if _segment_crosses_triangle(p, q, x[a], x[b], x[c]) != 0:
+        if segment_crosses_triangle(p, q, x[a], x[b], x[c]) != 0:
             crossing[tid] = 1
             wp.atomic_add(per_instance, instance, 1)
             return
@@ -107,9 +112,7 @@ def _pairs_kernel(mesh: wp.uint64, x: wp.array(dtype=wp.vec3d), faces: wp.array(
     j = edges[e, 1]
     p = x[i]
     q = x[j]
-    pf = wp.vec3(wp.float32(p[0]), wp.float32(p[1]), wp.float32(p[2]))
-    qf = wp.vec3(wp.float32(q[0]), wp.float32(q[1]), wp.float32(q[2]))
-    query = wp.mesh_query_aabb(mesh, wp.min(pf, qf) - wp.vec3(pad), wp.max(pf, qf) + wp.vec3(pad))
+    query = edge_query(mesh, p, q, pad)
     f = int(0)
     while wp.mesh_query_aabb_next(query, f):
         a = faces[f, 0]
@@ -117,7 +120,7 @@ def _pairs_kernel(mesh: wp.uint64, x: wp.array(dtype=wp.vec3d), faces: wp.array(
         c = faces[f, 2]
         if a == i or a == j or b == i or b == j or c == i or c == j:
             continue
-        if _segment_crosses_triangle(p, q, x[a], x[b], x[c]) != 0:
+        if segment_crosses_triangle(p, q, x[a], x[b], x[c]) != 0:
             slot = wp.atomic_add(count, 0, 1)
             if slot < pairs.shape[0]:
                 pairs[slot, 0] = e

@@ -19,7 +19,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from simgen.garment.crossings import BOX_PAD, CrossingCounter, _segment_crosses_triangle
+from simgen.garment.crossings import BOX_PAD, CrossingCounter, edge_query, segment_crosses_triangle
 from simgen.garment.untangle import untangle
 
 #: [m] how far beyond the crossed triangle's plane a vertex is put back.
@@ -54,9 +54,7 @@ def _push_back(meshes: wp.array(dtype=wp.uint64), x: wp.array(dtype=wp.vec3d), r
     j = edges[tid - instance * num_edges, 1] + base
     p = x[i]
     q = x[j]
-    pf = wp.vec3(wp.float32(p[0]), wp.float32(p[1]), wp.float32(p[2]))
-    qf = wp.vec3(wp.float32(q[0]), wp.float32(q[1]), wp.float32(q[2]))
-    query = wp.mesh_query_aabb(meshes[instance], wp.min(pf, qf) - wp.vec3(pad), wp.max(pf, qf) + wp.vec3(pad))
+    query = edge_query(meshes[instance], p, q, pad)
     f = int(0)
     zero = wp.float64(0.0)
     while wp.mesh_query_aabb_next(query, f):
@@ -65,7 +63,7 @@ def _push_back(meshes: wp.array(dtype=wp.uint64), x: wp.array(dtype=wp.vec3d), r
         c = faces[f, 2] + base
         if a == i or a == j or b == i or b == j or c == i or c == j:
             continue
-        if _segment_crosses_triangle(p, q, x[a], x[b], x[c]) == 0:
+        if segment_crosses_triangle(p, q, x[a], x[b], x[c]) == 0:
             continue
         found[0] = 1
         n = wp.normalize(wp.cross(x[b] - x[a], x[c] - x[a]))
@@ -134,7 +132,7 @@ class TangleRepair:
         self.single = CrossingCounter(self.faces, self.num_vertices, str(device))
         self.repaired = np.zeros(self.instances, dtype=np.int64)
         self.left = np.zeros(self.instances, dtype=np.int64)
-        self._active = None   # device buffers of the history rounds, made on first use
+        self._active = None   # device buffers of the pushes (_buffers), made on first use
 
     def __call__(self, state, pinned: wp.array, active: np.ndarray, reference: wp.array | None = None) -> list[int]:
         """Untangle the ``active`` (bool (N,)) instances of ``state`` (positions [m], velocities
@@ -155,49 +153,49 @@ class TangleRepair:
         self.left[todo] = self.counter.count_points(state.positions)[todo] if left else 0
         return todo.tolist()
 
+    def _buffers(self, device) -> None:
+        """The device buffers of the pushes, made on first use."""
+        if self._active is None:
+            n = self.instances * self.num_vertices
+            self._active = wp.zeros(self.instances, dtype=wp.int32, device=device)
+            self._accum = wp.zeros(n, dtype=wp.vec3d, device=device)
+            self._hits = wp.zeros(n, dtype=wp.int32, device=device)
+            self._found = wp.zeros(1, dtype=wp.int32, device=device)
+
     def _device_rounds(self, state, pinned, todo, reference) -> None:
         """Up to DEVICE_ROUNDS rounds of the history rule (module doc) on the device, for ``todo``."""
-        if self._active is None:
-            dev = state.positions.device
-            n = self.instances * self.num_vertices
-            self._active = wp.zeros(self.instances, dtype=wp.int32, device=dev)
-            self._accum = wp.zeros(n, dtype=wp.vec3d, device=dev)
-            self._hits = wp.zeros(n, dtype=wp.int32, device=dev)
-            self._found = wp.zeros(1, dtype=wp.int32, device=dev)
+        dev = state.positions.device
+        self._buffers(dev)
         flags = np.zeros(self.instances, dtype=np.int32)
         flags[todo] = 1
         self._active.assign(flags)
         c = self.counter
         for _ in range(DEVICE_ROUNDS):
             self._found.zero_()
-            wp.launch(_push_back, dim=self.instances * len(c.edges), device=state.positions.device,
+            wp.launch(_push_back, dim=self.instances * len(c.edges), device=dev,
                       inputs=[c.mesh_ids, c.x64, reference, c.device_faces, c.device_edges, BOX_PAD,
                               self.num_vertices, MARGIN, pinned, self._active, self._accum, self._hits, self._found])
-            wp.launch(_apply_pushes, dim=len(self._hits), device=state.positions.device,
+            wp.launch(_apply_pushes, dim=len(self._hits), device=dev,
                       inputs=[self._accum, self._hits, state.positions, state.velocities])
             if not self._found.numpy()[0]:
                 return
             c.load(state.positions)
 
     def _host(self, state, pinned, todo, reference) -> None:
-        """Untangle ``todo`` on the host (graph cut, with the reference where it tells)."""
-        x, v, fixed = state.positions.numpy(), state.velocities.numpy(), pinned.numpy() != 0
+        """Untangle ``todo`` on the host (graph cut, with the reference where it tells); the shifts
+        are applied on the device like the device rounds' pushes."""
+        dev = state.positions.device
+        self._buffers(dev)
+        x, fixed = state.positions.numpy().astype(np.float64), pinned.numpy() != 0
         ref = None if reference is None else reference.numpy()
+        shift = np.zeros_like(x)
         V = self.num_vertices
         for k in todo:
             rows = slice(k * V, (k + 1) * V)
             result = untangle(x[rows], self.faces, pinned=fixed[rows], counter=self.single,
                               reference=None if ref is None else ref[rows], max_rounds=HOST_ROUNDS)
-            shift = result.positions - x[rows]
-            x[rows] = result.positions
-            v[rows] = _drop_return_velocity(v[rows], shift)
-        state.positions.assign(x)
-        state.velocities.assign(v)
-
-
-def _drop_return_velocity(v: np.ndarray, shift: np.ndarray) -> np.ndarray:
-    """Velocities [m/s] (V, 3) without the part opposite to each vertex's untangling shift [m] (V, 3)."""
-    length = np.linalg.norm(shift, axis=1, keepdims=True)
-    direction = np.divide(shift, length, out=np.zeros_like(shift), where=length > 0)
-    back = np.minimum(np.einsum("ij,ij->i", v, direction), 0.0)[:, None]
-    return v - back * direction
+            shift[rows] = result.positions - x[rows]
+        self._accum.assign(shift)
+        self._hits.assign(np.any(shift != 0.0, axis=1).astype(np.int32))
+        wp.launch(_apply_pushes, dim=len(self._hits), device=dev,
+                  inputs=[self._accum, self._hits, state.positions, state.velocities])
