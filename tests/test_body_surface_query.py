@@ -100,7 +100,7 @@ def test_warp_and_torch_queries_are_equal_in_float64(name):
     assert mesh.is_watertight and mesh.is_winding_consistent and mesh.volume > 0
     pts = _points(mesh, np.random.default_rng(1))
     w = SurfaceMesh(v, f).project(pts, sign="normal")
-    t = body_distance(torch.tensor(pts), torch.tensor(v), BodySurface(f, v, leaf_size=8))
+    t = body_distance(torch.tensor(pts), torch.tensor(v), BodySurface(f, v))
     d, n, face = t.distance.numpy(), t.normal.numpy(), t.face.numpy()
     inside = reference.winding_numbers(pts, v, f) > 0.5
     assert 200 < inside.sum() < len(pts) - 200

@@ -64,7 +64,7 @@ from types import SimpleNamespace
 
 import warp as wp
 
-__all__ = ["contact_funcs", "query_kernel", "classify_inside", "SELF_INTERSECTION_PROBE"]
+__all__ = ["contact_funcs", "query_kernel", "nearest_face_kernel", "classify_inside", "SELF_INTERSECTION_PROBE"]
 
 #: [m] outward offset of the self-intersection rule's probe (module doc).
 SELF_INTERSECTION_PROBE = 2.0e-3
@@ -312,6 +312,20 @@ def query_kernel(scalar):
         bary[i] = b
 
     return query
+
+
+@wp.kernel(enable_backward=False)
+def nearest_face_kernel(meshes: wp.array(dtype=wp.uint64), points: wp.array(dtype=wp.vec3), per_mesh: int,
+                        face: wp.array(dtype=wp.int32)):
+    """The closest face (module doc, no query distance) of every point [m] (P,) on the mesh
+    ``meshes[i // per_mesh]`` of its block: the batched search of the torch twin (its "bvh" search).
+    face (P,) int32: the triangle index, -1 on a mesh without triangles."""
+    i = wp.tid()
+    q = wp.mesh_query_point_no_sign(meshes[i // per_mesh], points[i], 1.0e6)
+    if q.result:
+        face[i] = q.face
+    else:
+        face[i] = -1
 
 
 _f32 = contact_funcs(wp.float32)

@@ -15,8 +15,8 @@ pseudo-normal sign (the solver's), by one of two implementations (``CollisionSur
 - ``"warp"`` (the default when warp-lang imports): the Warp implementation (BVH on a ``wp.Mesh``
   built once and refit for every frame, the distance exact in the tensors' dtype), on the tensors'
   device (CPU or CUDA, on torch's stream, memory shared through ``wp.from_torch``);
-- ``"torch"`` (no Warp needed, any torch device): the torch implementation
-  (:func:`simgen.physics.surface_query.body_distance`, an exact clustered search).
+- ``"torch"``: the torch implementation (:func:`simgen.physics.surface_query.body_distance`: the
+  nearest triangle from Warp's BVH, the distance differentiable in torch), all frames at once.
 
 tests/test_body_surface_query.py holds the two implementations equal; tests/test_learn_collision.py
 holds the post-process against the winding-number query of :func:`simgen.body.surface.project_to_surface`.
@@ -44,8 +44,8 @@ class CollisionSurface:
     """The body surface as the collision post-process queries it, prepared once.
 
     faces, shape (F, 3) (outward counter-clockwise winding, as every simgen body); reference_vertices
-    [m], shape (V, 3): any pose of the body (the template), which groups the torch backend's
-    triangles into clusters; backend: "warp", "torch" or "auto" (warp when it imports).
+    [m], shape (V, 3): any pose of the body (the template); backend: "warp", "torch" or "auto"
+    (warp when it imports).
     """
 
     def __init__(self, faces, reference_vertices, *, backend: str = "auto", device=None):

@@ -1,5 +1,6 @@
 """The body-surface query in torch: the twin of :mod:`simgen.body.surface_query` (its specification:
-closest face, exact closest point, signed distance, normal), Warp-free, differentiable.
+closest face, exact closest point, signed distance, normal), differentiable; only the nearest-triangle
+search (below) runs in Warp.
 
 Implemented here: the pseudo-normal sign (the solver's; the winding-number variant and the body part
 rule are Warp-only). d goes through the body's nearest TRIANGLE (the exact point-triangle closest
@@ -15,14 +16,14 @@ Used by the SNUG losses and the physics evaluation (:mod:`simgen.physics.contact
 post-process (:mod:`simgen.learn.collision`). tests/test_body_surface_query.py holds it equal to
 the Warp implementation in float64.
 
-Nearest triangle search (no gradient): the body's triangles are grouped once into spatially compact
-clusters (recursive median splits of the reference pose); per frame each cluster gets a bounding
-sphere, and for each cloth vertex the clusters are visited by increasing lower bound
-|x - centre| - radius. The search is exact: it stops only when the next cluster's lower bound
-exceeds the best distance found (with a float round-off allowance), widening its candidate set
-otherwise, down to a brute-force pass over every triangle for the few vertices that need it.
-Memory and time are O(V x clusters) per frame, so whole sequences on the 13k-vertex body run on a
-CPU (and on CUDA). Unlike the BVH query, it has no query distance: every point finds its triangle.
+Nearest triangle search (no gradient): Warp's BVH, the solver's own query
+(:func:`simgen.body.surface_query.nearest_face_kernel`), one warp.Mesh per frame of a call, built at
+its first use and refit after, all frames in one launch, on the tensors' device (CPU or CUDA, on
+torch's stream). Its float32 distances pick the triangle (of triangles equally near within float32,
+either); the distance itself is computed here in the caller's precision. Unlike the solver's
+query, it has no query distance: every point finds its triangle. (A search in torch, over
+spatial clusters of triangles, took 99% of a SNUG training step on the GPU and 18x the BVH's time
+on the CPU; BENCHMARKS.md.)
 """
 
 from __future__ import annotations
@@ -94,31 +95,15 @@ def closest_point_triangle(p, a, b, c) -> tuple[torch.Tensor, torch.Tensor, torc
     return closest, torch.stack([1 - v - w, v, w], dim=-1), region
 
 
-def _median_clusters(centroids: np.ndarray, leaf_size: int) -> list[np.ndarray]:
-    """Face index groups of at most leaf_size by recursive median splits along the longest axis."""
-    out, stack = [], [np.arange(len(centroids))]
-    while stack:
-        idx = stack.pop()
-        if len(idx) <= leaf_size:
-            out.append(idx)
-            continue
-        pts = centroids[idx]
-        axis = int(np.argmax(pts.max(0) - pts.min(0)))
-        order = idx[np.argsort(pts[:, axis], kind="stable")]
-        half = len(order) // 2
-        stack += [order[:half], order[half:]]
-    return out
-
-
 class BodySurface:
     """Topology of a closed, outward-oriented body mesh for signed distances (one per body model).
 
     faces (Fb, 3) int, counter-clockwise seen from outside; reference_vertices [m] (Vb, 3): any
-    pose of the body (the rest pose), used once to group triangles into spatial clusters;
-    leaf_size: triangles per cluster. Tensors live on ``device`` (move with :meth:`to`).
+    pose of the body (the rest pose; it fixes Vb). Tensors live on ``device`` (move with :meth:`to`).
     """
 
-    def __init__(self, faces, reference_vertices, *, leaf_size: int = 48, device=None) -> None:
+    def __init__(self, faces, reference_vertices, *, device=None) -> None:
+        self._bvh = None
         f = np.asarray(faces)
         v = np.asarray(reference_vertices, dtype=np.float64)
         if f.ndim != 2 or f.shape[1] != 3 or len(f) == 0 or not np.issubdtype(f.dtype, np.integer):
@@ -144,18 +129,9 @@ class BodySurface:
         edge_faces[inverse[order][rest], 1] = face_of[order][rest]
         # An edge with one face (an open mesh) uses that face's normal alone.
         edge_faces[:, 1] = np.where(edge_faces[:, 1] < 0, edge_faces[:, 0], edge_faces[:, 1])
-        clusters = _median_clusters(v[f].mean(axis=1), int(leaf_size))
-        width = max(len(c) for c in clusters)
-        members = np.full((len(clusters), width), -1, dtype=np.int64)
-        for i, c in enumerate(clusters):
-            members[i, :len(c)] = c
-        # Cap on clusters visited at once (rows x clusters) in the widening pass: bounds its memory
-        # (16 times more on a GPU, where each pass costs launches rather than memory).
-        self.max_cluster_visits = 16384
         self.faces = torch.as_tensor(f)
         self.face_edges = torch.as_tensor(face_edges.astype(np.int64))
         self.edge_faces = torch.as_tensor(edge_faces)
-        self.cluster_members = torch.as_tensor(members)
         if device is not None:
             self.to(device)
 
@@ -174,16 +150,17 @@ class BodySurface:
 
     def to(self, device) -> "BodySurface":
         """Move the topology tensors to ``device`` (in place; returns self)."""
-        for name in ("faces", "face_edges", "edge_faces", "cluster_members"):
+        for name in ("faces", "face_edges", "edge_faces"):
             setattr(self, name, getattr(self, name).to(device))
+        self._bvh = None
         return self
 
     # -- per-frame geometry ---------------------------------------------------------------------
 
     def frame_geometry(self, vertices: torch.Tensor) -> dict:
         """Per-frame data of posed bodies, vertices [m] (Vb, 3) or (B, Vb, 3) for B frames: triangle
-        corners (..., Fb, 3, 3), unit face normals (..., Fb, 3), vertex and edge pseudo-normals,
-        cluster bounding spheres; every entry keeps the input's leading frame dimension (if any)."""
+        corners (..., Fb, 3, 3), unit face normals (..., Fb, 3), vertex and edge pseudo-normals, and the
+        vertices themselves; every entry keeps the input's leading frame dimension (if any)."""
         if vertices.ndim == 2:
             return {k: v[0] for k, v in self.frame_geometry(vertices[None]).items()}
         nb = vertices.shape[0]
@@ -201,111 +178,20 @@ class BodySurface:
         vn = torch.zeros((nb, self.num_vertices, 3), dtype=vertices.dtype, device=vertices.device)
         vn.index_add_(1, self.faces.reshape(-1), (angles[..., None] * fn[..., None, :]).reshape(nb, -1, 3))
         en = fn[:, self.edge_faces[:, 0]] + fn[:, self.edge_faces[:, 1]]
-        centroid = tri.mean(dim=-2)
-        face_radius = (tri - centroid[..., None, :]).norm(dim=-1).amax(dim=-1)
-        members = self.cluster_members
-        valid = members >= 0
-        m = members.clamp_min(0)
-        count = valid.sum(1, keepdim=True).to(vertices.dtype)
-        centre = (centroid[:, m] * valid[..., None]).sum(-2) / count
-        radius = torch.where(valid, (centroid[:, m] - centre[..., None, :]).norm(dim=-1) + face_radius[:, m],
-                             torch.zeros_like(face_radius[:, m])).amax(dim=-1)
-        return dict(tri=tri, face_normal=fn, vertex_normal=vn, edge_normal=en, face_centroid=centroid,
-                    face_radius=face_radius, cluster_centre=centre, cluster_radius=radius)
+        return dict(vertices=vertices, tri=tri, face_normal=fn, vertex_normal=vn, edge_normal=en)
 
     # -- search ---------------------------------------------------------------------------------
 
     @torch.no_grad()
-    def nearest_faces(self, points: torch.Tensor, geometry: dict, *, k: int = 8, faces_per_point: int = 24,
-                      chunk: int | None = None) -> torch.Tensor:
-        """Index of the exactly nearest body triangle of each point [m]: (P, 3) with one frame's
-        geometry -> (P,) long, or (B, P, 3) with B frames' geometry (:meth:`frame_geometry`) -> (B, P).
-
-        Clusters: the k of smallest lower bound first; every cluster whose lower bound is below the
-        best distance found could hold a closer triangle, so points with more such clusters than k
-        are searched again over exactly that many (the best distance only shrinks: exact). Within
-        the candidate clusters, the exact point-triangle test runs on the ``faces_per_point``
-        triangles of smallest bounding-sphere lower bound, and on all candidates for the points
-        where a triangle left out could still be closer. chunk: points searched at once (None: 1024
-        on the CPU, 32768 on a GPU, where the search is bound by kernel launches, not memory).
-        """
+    def nearest_faces(self, points: torch.Tensor, geometry: dict) -> torch.Tensor:
+        """Index of the nearest body triangle of each point [m] (module doc: Warp's BVH): (P, 3) with
+        one frame's geometry -> (P,) long, or (B, P, 3) with B frames' geometry (:meth:`frame_geometry`)
+        -> (B, P)."""
         if points.ndim == 2:
-            return self.nearest_faces(points[None], {k_: v[None] for k_, v in geometry.items()}, k=k,
-                                      faces_per_point=faces_per_point, chunk=chunk)[0]
-        if chunk is None:
-            chunk = 1024 if points.device.type == "cpu" else 32768
-        nb, npts = points.shape[:2]
-        nf = self.num_faces
-        tri = geometry["tri"].reshape(-1, 3, 3)                                   # (B * Fb, 3, 3)
-        a = tri[:, 0]
-        ab, ac = tri[:, 1] - a, tri[:, 2] - a
-        consts = torch.stack([_dot(ab, ab), _dot(ab, ac), _dot(ac, ac)], dim=-1)     # (B * Fb, 3)
-        f_centre, f_radius = geometry["face_centroid"].reshape(-1, 3), geometry["face_radius"].reshape(-1)
-        centre, radius = geometry["cluster_centre"], geometry["cluster_radius"]    # (B, Nc, 3), (B, Nc)
-        members = self.cluster_members
-        nc = members.shape[0]
-        # Round-off allowance of the float lower bounds [m].
-        scale = float(points.abs().max()) + float(tri.abs().max()) + 1.0
-        slack = 64.0 * torch.finfo(points.dtype).eps * scale
-        inf = float("inf")
-
-        def exact(p, fc, valid):
-            """Nearest of the triangles fc (n, m) (global ids, where valid) to p (n, 3): (face, distance)."""
-            ap = p[:, None, :] - a[fc]
-            fab, fac, cst = ab[fc], ac[fc], consts[fc]
-            _, v, w = _regions(_dot(fab, ap), _dot(fac, ap), cst[..., 0], cst[..., 1], cst[..., 2])
-            diff = ap - v[..., None] * fab - w[..., None] * fac
-            d2 = torch.where(valid, _dot(diff, diff), torch.full_like(v, inf))
-            best, arg = d2.min(dim=1)
-            return fc.gather(1, arg[:, None])[:, 0], best.sqrt()
-
-        def search(p, lb, kk, base):
-            # base (n, 1): the row's frame offset into the flattened (B * Fb) face arrays.
-            _, ci = torch.topk(lb, kk, dim=1, largest=False, sorted=False)
-            faces = members[ci].reshape(len(p), -1)                                   # (n, kk * L)
-            valid = faces >= 0
-            fc = faces.clamp_min(0) + base
-            flb = torch.where(valid, (p[:, None, :] - f_centre[fc]).norm(dim=-1) - f_radius[fc],
-                              torch.full(fc.shape, inf, dtype=p.dtype, device=p.device))
-            m = min(faces_per_point, fc.shape[1])
-            if m == fc.shape[1]:
-                return exact(p, fc, valid)
-            lbs, order = torch.topk(flb, m + 1, dim=1, largest=False, sorted=True)
-            face, best = exact(p, fc.gather(1, order[:, :m]), torch.isfinite(lbs[:, :m]))
-            wide = torch.nonzero(lbs[:, m] - slack < best)[:, 0]
-            if wide.numel():
-                face[wide], best[wide] = exact(p[wide], fc[wide], valid[wide])
-            return face, best
-
-        visits = self.max_cluster_visits * (1 if points.device.type == "cpu" else 16)
-        out = torch.empty((nb, npts), dtype=torch.long, device=points.device)
-        frames_at_once = max(1, chunk // npts)
-        rows_at_once = min(npts, chunk)
-        for b0 in range(0, nb, frames_at_once):
-            b1 = min(nb, b0 + frames_at_once)
-            for s0 in range(0, npts, rows_at_once):
-                s1 = min(npts, s0 + rows_at_once)
-                q = points[b0:b1, s0:s1]
-                lb = torch.cdist(q, centre[b0:b1], compute_mode="donot_use_mm_for_euclid_dist") - radius[b0:b1, None]
-                lb = lb.reshape(-1, nc)                                                  # (rows, Nc)
-                p = q.reshape(-1, 3)
-                base = (torch.arange(b0, b1, device=p.device) * nf).repeat_interleave(s1 - s0)[:, None]
-                face, best = search(p, lb, min(k, nc), base)
-                need = (lb < (best + slack)[:, None]).sum(dim=1)
-                again = torch.nonzero(need > k)[:, 0]
-                if again.numel():
-                    # Widen in groups of similar need (sorted), bounding the clusters visited at once.
-                    again = again[torch.argsort(need[again])]
-                    i = 0
-                    while i < again.numel():
-                        rows = max(1, visits // int(need[again[i]]))
-                        kk = int(need[again[min(i + rows, again.numel()) - 1]])
-                        rows = max(1, min(rows, visits // kk))
-                        grp = again[i:i + rows]
-                        face[grp], _ = search(p[grp], lb[grp], int(need[grp].max()), base[grp])
-                        i += len(grp)
-                out[b0:b1, s0:s1] = (face - base[:, 0]).reshape(b1 - b0, s1 - s0)
-        return out
+            return self.nearest_faces(points[None], {k_: v[None] for k_, v in geometry.items()})[0]
+        if self._bvh is None:
+            self._bvh = _BvhSearch(self.faces)
+        return self._bvh.nearest(points, geometry["vertices"])
 
     @torch.no_grad()
     def nearest_faces_brute_force(self, points: torch.Tensor, vertices: torch.Tensor, *,
@@ -318,6 +204,56 @@ class BodySurface:
             c, _, _ = closest_point_triangle(q, tri[None, :, 0], tri[None, :, 1], tri[None, :, 2])
             out[start:start + chunk] = ((q - c) ** 2).sum(-1).argmin(dim=1)
         return out
+
+
+class _BvhSearch:
+    """The nearest-triangle search (module doc): one warp.Mesh per frame slot of a call, on the
+    faces' device, built on its first frame and refit to each later one (a refit tree stays exact,
+    only its pruning gets looser as poses drift from the first)."""
+
+    def __init__(self, faces: torch.Tensor) -> None:
+        import warp as wp
+
+        from simgen._warp_log import init_warp
+
+        self.device = faces.device
+        init_warp(str(self.device))
+        self.wp_device = wp.device_from_torch(self.device)
+        self._indices_t = faces.to(torch.int32).reshape(-1).contiguous()
+        self.indices = wp.from_torch(self._indices_t, dtype=wp.int32)
+        self.slots: list = []           # (float32 points (Vb, 3) torch buffer, warp.Mesh)
+        self.ids = None                 # (slots,) uint64 mesh ids on the device
+
+    def nearest(self, points: torch.Tensor, vertices: torch.Tensor) -> torch.Tensor:
+        """Nearest triangle of points [m] (B, P, 3) on the bodies vertices [m] (B, Vb, 3): (B, P) long."""
+        import contextlib
+
+        import warp as wp
+
+        from simgen.body.surface_query import nearest_face_kernel
+
+        nb, npts = points.shape[:2]
+        cuda = self.device.type == "cuda"
+        stream = wp.ScopedStream(wp.stream_from_torch(self.device)) if cuda else contextlib.nullcontext()
+        with wp.ScopedDevice(self.wp_device), stream:
+            for b in range(nb):
+                v = vertices[b].detach().to(torch.float32)
+                if b < len(self.slots):
+                    buf, mesh = self.slots[b]
+                    buf.copy_(v)
+                    mesh.refit()
+                else:
+                    buf = v.contiguous().clone()
+                    mesh = wp.Mesh(points=wp.from_torch(buf, dtype=wp.vec3), indices=self.indices)
+                    self.slots.append((buf, mesh))
+                    self.ids = None
+            if self.ids is None:
+                self.ids = wp.array(np.array([m.id for _, m in self.slots], dtype=np.uint64), dtype=wp.uint64)
+            q = points.detach().to(torch.float32).reshape(-1, 3).contiguous()
+            face = torch.empty(nb * npts, dtype=torch.int32, device=self.device)
+            wp.launch(nearest_face_kernel, dim=nb * npts,
+                      inputs=[self.ids, wp.from_torch(q, dtype=wp.vec3), npts, wp.from_torch(face, dtype=wp.int32)])
+        return face.reshape(nb, npts).long()
 
 
 @dataclass
@@ -381,7 +317,7 @@ def _signed_on_faces(x, geometry, surface: BodySurface, face, frame):
     return d, normal, bary
 
 
-def body_distance(x: torch.Tensor, body_vertices: torch.Tensor, surface: BodySurface, *, k: int = 6,
+def body_distance(x: torch.Tensor, body_vertices: torch.Tensor, surface: BodySurface, *,
                   frames_at_once: int = 64) -> BodyDistance:
     """Signed distance of every cloth vertex to the posed body (module doc), batched over frames.
 
@@ -409,10 +345,10 @@ def body_distance(x: torch.Tensor, body_vertices: torch.Tensor, surface: BodySur
         detached = {k_: v.detach() for k_, v in geometry.items()}
         pts = xs[f0:f1]
         if static:
-            face = surface.nearest_faces(pts.detach().reshape(1, -1, 3), detached, k=k).reshape(f1 - f0, nv)
+            face = surface.nearest_faces(pts.detach().reshape(1, -1, 3), detached).reshape(f1 - f0, nv)
             frame = torch.zeros(face.numel(), dtype=torch.long, device=x.device)
         else:
-            face = surface.nearest_faces(pts.detach(), detached, k=k)
+            face = surface.nearest_faces(pts.detach(), detached)
             frame = torch.arange(f1 - f0, device=x.device).repeat_interleave(nv)
         d, n, bary = _signed_on_faces(pts.reshape(-1, 3), geometry, surface, face.reshape(-1), frame)
         ds.append(d.reshape(f1 - f0, nv))
