@@ -80,11 +80,12 @@ def mean_curvature(vertices, faces) -> torch.Tensor:
 def curvature_error(prediction, reference, faces, mask=None, *, reference_curvature=None) -> np.ndarray:
     """Mean-curvature error [1/m] per frame: mean over vertices of |H(prediction) - H(reference)|.
 
-    prediction, reference [m] (T, V, 3); faces (F, 3); mask bool (V,): the vertices that count
-    (default: all but the boundary, :func:`boundary_vertices`); reference_curvature: H(reference)
-    (T, V) if already computed. Returns (T,) float64.
+    prediction, reference [m] (T, V, 3) (numpy, or torch on any device: computed there); faces
+    (F, 3); mask bool (V,): the vertices that count (default: all but the boundary,
+    :func:`boundary_vertices`); reference_curvature: H(reference) (T, V) if already computed.
+    Returns (T,) float64.
     """
-    v = np.asarray(prediction).shape[-2]
+    v = prediction.shape[-2]
     keep = ~boundary_vertices(faces, v) if mask is None else np.asarray(mask, dtype=bool)
     h_ref = mean_curvature(reference, faces) if reference_curvature is None else reference_curvature
     diff = (mean_curvature(prediction, faces) - h_ref).abs()

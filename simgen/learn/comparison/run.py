@@ -220,18 +220,21 @@ def _measure(data, split, groups, contestants, body_model, dev, inside_stride: i
             s = data.sequences[sid]
             b, p, t = (torch.as_tensor(x, dtype=torch.float32, device=dev) for x in (s.betas, s.poses, s.trans))
             bv, _, a = tb(b, p, t)
-            preds = {c.key: c.predict(b, p, t, s.fps, a).cpu().numpy() for c in contestants}
+            # On ``dev`` (the curvature of every method and frame is most of this loop's arithmetic).
+            on_dev = {c.key: c.predict(b, p, t, s.fps, a) for c in contestants}
+            preds = {k: x.cpu().numpy() for k, x in on_dev.items()}
             gt = s.vertices
-            h_gt = M.mean_curvature(gt, data.faces)
+            gt_dev = torch.as_tensor(gt, device=dev)
+            h_gt = M.mean_curvature(gt_dev, data.faces)
             row = {"group": group, "motion": s.motion, "shape_id": s.shape_id, "frames": s.num_frames, "fps": s.fps,
                    "betas": [float(x) for x in s.betas[0]],
-                   "mean_abs_curvature": float(h_gt[:, torch.as_tensor(interior)].abs().mean()),
+                   "mean_abs_curvature": float(h_gt[:, torch.as_tensor(interior, device=dev)].abs().mean()),
                    "error_cm_per_frame": {}, "curvature_error_per_frame": {}}
             for k, x in preds.items():
                 row["error_cm_per_frame"][k] = [round(float(e), 5) for e in
                                                 np.linalg.norm(x - gt, axis=-1).mean(-1) * 100.0]
                 row["curvature_error_per_frame"][k] = [round(float(e), 5) for e in M.curvature_error(
-                    x, gt, data.faces, interior, reference_curvature=h_gt)]
+                    on_dev[k], gt_dev, data.faces, interior, reference_curvature=h_gt)]
             row["error_cm"] = {k: float(np.mean(v)) for k, v in row["error_cm_per_frame"].items()}
             row["curvature_error"] = {k: float(np.mean(v)) for k, v in row["curvature_error_per_frame"].items()}
             bv_np = bv.cpu().numpy()
