@@ -318,8 +318,8 @@ def query_kernel(scalar):
 def nearest_face_kernel(meshes: wp.array(dtype=wp.uint64), points: wp.array(dtype=wp.vec3), per_mesh: int,
                         face: wp.array(dtype=wp.int32)):
     """The closest face (module doc, no query distance) of every point [m] (P,) on the mesh
-    ``meshes[i // per_mesh]`` of its block: the batched search of the torch twin (its "bvh" search).
-    face (P,) int32: the triangle index, -1 on a mesh without triangles."""
+    ``meshes[i // per_mesh]`` of its block of ``per_mesh`` points: the torch twin's batched
+    nearest-triangle search. face (P,) int32: the triangle index (-1 if the query found none)."""
     i = wp.tid()
     q = wp.mesh_query_point_no_sign(meshes[i // per_mesh], points[i], 1.0e6)
     if q.result:
