@@ -22,6 +22,24 @@ __all__ = ["axis_angle_to_matrix_torch", "TorchBody"]
 _SERIES_THRESHOLD_SQ = 1e-3
 
 
+def _depth_levels(parents) -> tuple[np.ndarray, np.ndarray, list[int]]:
+    """A kinematic tree by depth. parents (J,) with parents[0] = -1 (every parent before its child)
+    -> (nodes (J,): the joints ordered by depth, stable; parent_slot (J,): per entry of nodes the
+    position of its parent among the level above (0 for the root); bounds: the levels' start
+    indices into nodes, and J)."""
+    parents = np.asarray(parents, dtype=np.int64)
+    depth = np.zeros(len(parents), dtype=np.int64)
+    for j in range(1, len(parents)):
+        depth[j] = depth[parents[j]] + 1
+    nodes = np.argsort(depth, kind="stable")
+    bounds = [0] + [int(np.searchsorted(depth[nodes], d, side="right")) for d in range(int(depth.max()) + 1)]
+    position = np.empty(len(parents), dtype=np.int64)
+    for s, e in zip(bounds[:-1], bounds[1:]):
+        position[nodes[s:e]] = np.arange(e - s)
+    parent_slot = np.where(nodes == 0, 0, position[np.maximum(parents[nodes], 0)])
+    return nodes, parent_slot, bounds
+
+
 def axis_angle_to_matrix_torch(axis_angle: torch.Tensor) -> torch.Tensor:
     """Rodrigues' formula with gradients that stay finite and exact at zero angle.
 
@@ -71,7 +89,6 @@ class TorchBody(torch.nn.Module):
         self.num_vertices = model.num_vertices
         self.num_betas = model.num_betas
         self.num_pose_features = int(model.posedirs.shape[2])
-        self._parents = tuple(int(p) for p in model.parents)
 
         def buffer(array: np.ndarray, as_dtype=dtype) -> torch.Tensor:
             return torch.tensor(np.asarray(array), dtype=as_dtype, device=device)
@@ -85,6 +102,12 @@ class TorchBody(torch.nn.Module):
         self.register_buffer("weights", buffer(model.weights))
         self.register_buffer("faces", buffer(model.faces, torch.int64))
         self.register_buffer("parents", buffer(model.parents, torch.int64))
+        # Forward kinematics by depth (:meth:`kinematics`): the joints in order of depth, each one's
+        # parent as a position in the level above, the way back to joint order, the levels' bounds.
+        nodes, parent_slot, self._fk_bounds = _depth_levels(model.parents)
+        self.register_buffer("fk_nodes", buffer(nodes, torch.int64))
+        self.register_buffer("fk_parent_slot", buffer(parent_slot, torch.int64))
+        self.register_buffer("fk_joint_order", buffer(np.argsort(nodes), torch.int64))
 
     @property
     def dtype(self) -> torch.dtype:
@@ -147,6 +170,31 @@ class TorchBody(torch.nn.Module):
         used = betas.shape[1]
         return self.joint_template + torch.einsum("jcb,nb->njc", self.joint_shapedirs[:, :, :used], betas)
 
+    def kinematics(self, J: torch.Tensor, R: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Forward kinematics: rest joints J [m] (N, 24, 3) and local rotations R (N, 24, 3, 3) ->
+        global rotations (N, 24, 3, 3) and joint positions [m] (N, 24, 3) (without trans).
+
+        Level by level of the tree's depth (8 levels for SMPL's 24 joints): every joint of a level
+        composes its parent's global transform in one batched product, so a call costs a few dozen
+        tensor operations instead of a few per joint (kernel launches on a GPU). Out of place, so
+        autograd sees a clean graph.
+        """
+        rel = torch.cat([J[:, :1], J[:, 1:] - J.index_select(1, self.parents[1:])], dim=1)
+        rots, poss = [], []
+        for level, (s, e) in enumerate(zip(self._fk_bounds[:-1], self._fk_bounds[1:])):
+            nodes = self.fk_nodes[s:e]
+            r_local, t_local = R.index_select(1, nodes), rel.index_select(1, nodes)
+            if level == 0:
+                rots.append(r_local)
+                poss.append(t_local)
+                continue
+            slot = self.fk_parent_slot[s:e]
+            r_parent, p_parent = rots[-1].index_select(1, slot), poss[-1].index_select(1, slot)
+            rots.append(r_parent @ r_local)
+            poss.append(p_parent + (r_parent @ t_local[..., None])[..., 0])
+        order = self.fk_joint_order
+        return torch.cat(rots, dim=1).index_select(1, order), torch.cat(poss, dim=1).index_select(1, order)
+
     def forward(self, betas=None, pose=None, trans=None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Posed bodies, differentiable in all inputs.
 
@@ -167,15 +215,7 @@ class TorchBody(torch.nn.Module):
             pose_feature = (R[:, 1:] - eye).reshape(n, -1)  # (N, 207), SMPL's row-major R_j - I
             v_posed = v_shaped + (pose_feature @ self.posedirs.T).reshape(n, -1, 3)
 
-        # Forward kinematics as a list (no in-place writes, so autograd sees a clean graph).
-        global_rot = [R[:, 0]]
-        global_pos = [J[:, 0]]
-        for j in range(1, NUM_JOINTS):
-            p = self._parents[j]
-            global_rot.append(global_rot[p] @ R[:, j])
-            global_pos.append(global_pos[p] + (global_rot[p] @ (J[:, j] - J[:, p])[..., None])[..., 0])
-        G_rot = torch.stack(global_rot, dim=1)  # (N, 24, 3, 3)
-        G_pos = torch.stack(global_pos, dim=1)  # (N, 24, 3)
+        G_rot, G_pos = self.kinematics(J, R)
 
         joints = G_pos + trans[:, None]
         # Skinning translation: a rest point x attached to joint j goes to G_rot (x - J_j) + G_pos + trans.

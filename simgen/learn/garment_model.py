@@ -49,14 +49,7 @@ def joint_transforms(body, betas: torch.Tensor, pose: torch.Tensor, trans: torch
 
     n = pose.shape[0]
     J = body.rest_joints(betas.expand(n, -1))
-    R = axis_angle_to_matrix_torch(pose)
-    parents = body._parents
-    rot, pos = [R[:, 0]], [J[:, 0]]
-    for j in range(1, 24):
-        p = parents[j]
-        rot.append(rot[p] @ R[:, j])
-        pos.append(pos[p] + (rot[p] @ (J[:, j] - J[:, p])[..., None])[..., 0])
-    G_rot, G_pos = torch.stack(rot, dim=1), torch.stack(pos, dim=1)
+    G_rot, G_pos = body.kinematics(J, axis_angle_to_matrix_torch(pose))
     A_pos = G_pos - (G_rot @ J[..., None])[..., 0] + trans[:, None]
     top = torch.cat([G_rot, A_pos[..., None]], dim=-1)
     bottom = torch.zeros((n, 24, 1, 4), dtype=top.dtype, device=top.device)
