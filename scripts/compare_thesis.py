@@ -17,7 +17,7 @@ back mid-run still returns them; times.json records when each piece started and 
 and the store stay in --work (a device call returns small files only).
 
     # on the device machine, in the background (a call lasts at most 10 minutes):
-    python scripts/compare_thesis.py --out /root/cmp --work /root/cmpwork --device cuda
+    python scripts/compare_thesis.py --out runs/ch5 --work runs/ch5-work --device cuda
 """
 
 from __future__ import annotations
@@ -49,7 +49,8 @@ class Runner:
 
     def wait(self, *names: str, watch: tuple = ()) -> None:
         """Until every command in ``names`` has ended, recording the end of each (and of those in
-        ``watch``, which are not waited for) as it comes."""
+        ``watch``, which are not waited for) as it comes. A command in ``names`` that failed stops
+        the others and the script, naming its log (what later steps need is missing)."""
         while any("rc" not in self.times[n] for n in names):
             for name in (*names, *watch):
                 proc, log = self.procs[name]
@@ -58,6 +59,13 @@ class Runner:
                     self.times[name].update(end_s=round(time.monotonic() - self.t0, 1), rc=proc.returncode)
                     self._save()
             time.sleep(0.5)
+        failed = [n for n in names if self.times[n]["rc"] != 0]
+        if failed:
+            for proc, _ in self.procs.values():
+                if proc.poll() is None:
+                    proc.terminate()
+            sys.exit(f"compare_thesis: {failed[0]} failed (exit code {self.times[failed[0]]['rc']}); its output is "
+                     f"in {self.out / (failed[0] + '.log')}")
 
     def _save(self) -> None:
         (self.out / "times.json").write_text(json.dumps(self.times, indent=1) + "\n")
