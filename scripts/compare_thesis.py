@@ -13,8 +13,10 @@ Schedule (each line starts when the one it names has ended):
 4. after all of them: ``eval compare`` on at most ``--max-sequences`` sequences per held-out group.
 
 Each finished run's log.csv and config.json are copied into --out at once, so a machine taken
-back mid-run still returns them; times.json records when each piece started and ended. Models
-and the store stay in --work (a device call returns small files only).
+back mid-run still returns them; times.json records when each piece started and ended. Models,
+the store and compare.usdc stay in --work (a device call returns small files only); the MP4 is
+rendered on a machine with OpenGL from --out/compare/compare_clips.npz (``simgen eval
+compare-video``).
 
     # on the device machine, in the background (a call lasts at most 10 minutes):
     python scripts/compare_thesis.py --out runs/ch5 --work runs/ch5-work --device cuda
@@ -129,7 +131,7 @@ def main() -> None:
                                 "--out", str(a.out / "compare"), "--test-shapes", shapes, *dev, "--no-video",
                                 "--max-sequences", str(a.max_sequences), "--inside-stride", str(a.inside_stride)))
     run.wait("compare")
-    for usd in (a.out / "compare").glob("*.usdc"):  # tens of MB: it stays with the models
+    for usd in (a.out / "compare").glob("*.usdc"):  # hundreds of MB: it stays with the models
         shutil.move(str(usd), a.work / usd.name)
     print(json.dumps({"commit": os.environ.get("SIMGEN_COMMIT", "unknown"), "times": run.times}))
 

@@ -1230,6 +1230,21 @@ def eval_compare_cmd(
                      progress_factory=_progress)
 
 
+@eval_app.command("compare-video")
+def eval_compare_video_cmd(
+    clips: Path = typer.Option(..., "--clips", help="compare_clips.npz of `simgen eval compare --no-video`."),
+    out: Path = typer.Option(Path("compare.mp4"), "--out", help="The MP4 to write."),
+    body: Optional[str] = _T_BODY,
+) -> None:
+    """Render the MP4 of an `eval compare --no-video` run (e.g. one made on a GPU machine without OpenGL)."""
+    from simgen.learn.comparison.outputs import render_clips
+
+    progress, update = _progress("rendering", 1)
+    with progress:
+        path = render_clips(clips, out, body=None if body is None else _load_body(body), progress=update)
+    typer.echo(f"wrote: {path}")
+
+
 @eval_app.command("softtissue")
 def eval_softtissue_cmd(
     models: str = typer.Option(..., "--models", help="Trained SoftSMPL folders (`simgen train softtissue`), 'a,b' "

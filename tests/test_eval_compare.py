@@ -234,3 +234,29 @@ def test_vertex_l2_training_lowers_its_loss(data, tmp_path):
     model = load_snug_model(tmp_path, identity=data.identity)
     assert model.net.saved_config["training"]["method"] == GRU_L2_METHOD
     assert (tmp_path / "split.json").is_file()
+
+
+def test_clips_file_keeps_the_garments_and_renders_elsewhere(data, tmp_path, capsys):
+    """--no-video's compare_clips.npz: every garment back within float16's 0.5 mm of the root, the
+    body re-posed from the stored motion, and `simgen eval compare-video` renders it."""
+    from simgen.learn.comparison.outputs import read_clips, write_clips
+
+    clips = []
+    for sid in list(data.sequences)[:2]:
+        s = data.sequences[sid]
+        clips.append({"id": sid, "fps": s.fps, "betas": s.betas[:3], "poses": s.poses[:3], "trans": s.trans[:3],
+                      "ground_truth": s.vertices[:3], "predictions": {"lbs": s.vertices[:3] + 0.01}})
+    path = write_clips(tmp_path / "compare_clips.npz", clips, ["lbs"], {"lbs": "LBS"}, data.faces,
+                       {"identity": data.identity, "garment": data.garment_name})
+    info, back = read_clips(path)
+    assert info["order"] == ["lbs"] and [c["id"] for c in back] == [c["id"] for c in clips]
+    for a, b in zip(clips, back):
+        assert np.abs(b["ground_truth"] - a["ground_truth"]).max() < 5e-4
+        assert np.abs(b["predictions"]["lbs"] - a["predictions"]["lbs"]).max() < 5e-4
+        np.testing.assert_array_equal(b["poses"], a["poses"])
+    with pytest.raises(InputError, match="is not a file"):
+        read_clips(tmp_path / "missing.npz")
+    if _can_render():
+        code, _, err = run(["eval", "compare-video", "--clips", str(path), "--out", str(tmp_path / "c.mp4")], capsys)
+        assert code == 0, err
+        assert (tmp_path / "c.mp4").stat().st_size > 1000

@@ -123,12 +123,16 @@ def _check_sequence(positions, body_vertices, rest: ClothRest, surface: BodySurf
     return pos, bv
 
 
-def _crossing_edges(positions: np.ndarray, faces) -> np.ndarray:
-    """Crossing edges per frame (T,) float64 of positions [m] (T, V, 3) (Warp, loaded here only)."""
+def _crossing_edges(positions: np.ndarray, faces, device: torch.device) -> np.ndarray:
+    """Crossing edges per frame (T,) float64 of positions [m] (T, V, 3), counted on the torch
+    ``device``'s GPU or on the CPU (Warp, loaded here only)."""
+    from simgen._warp_log import init_warp
     from simgen.garment.crossings import count_crossing_edges
 
     f = faces.cpu().numpy() if isinstance(faces, torch.Tensor) else np.asarray(faces)
-    return count_crossing_edges(positions, f).astype(np.float64)
+    wp_device = f"cuda:{device.index or 0}" if device.type == "cuda" else "cpu"
+    init_warp(wp_device)
+    return count_crossing_edges(positions, f, wp_device).astype(np.float64)
 
 
 def evaluate_sequence(positions, body_vertices, rest: ClothRest, surface: BodySurface, fps: float, *,
@@ -183,7 +187,7 @@ def evaluate_sequence(positions, body_vertices, rest: ClothRest, surface: BodySu
             if progress is not None:
                 progress(sl.stop, T)
     cols["potential"] = cols["inertia"] + cols["strain"] + cols["bending"] + cols["gravity"] + cols["collision"]
-    cols["crossing_edges"] = _crossing_edges(pos, r.faces)
+    cols["crossing_edges"] = _crossing_edges(pos, r.faces, device)
     info = dict(meta or {})
     info.update(contact=dict(margin=contact_params.margin, stiffness=contact_params.stiffness,
                              power=contact_params.power, query_distance=contact_params.query_distance),

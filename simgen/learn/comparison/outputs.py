@@ -1,5 +1,5 @@
 """What ``simgen eval compare`` writes: tables (Markdown + JSON), the per-frame error plot, the
-side-by-side USD and the MP4, all into a staging folder that is moved into --out only when every
+side-by-side USD and the MP4 (or, with --no-video, the clips the MP4 needs), all into a staging folder that is moved into --out only when every
 file is written (a failure leaves --out as it was)."""
 
 from __future__ import annotations
@@ -15,11 +15,13 @@ import numpy as np
 from simgen.errors import InputError
 
 __all__ = ["staging", "publish", "write_tables", "write_results", "plot_error_per_frame", "clip_tracks",
-           "write_usd_and_video", "REPORT_FILE", "RESULTS_FILE", "OTHER_FILES"]
+           "write_usd_and_video", "write_clips", "read_clips", "render_clips", "REPORT_FILE", "RESULTS_FILE", "CLIPS_FILE",
+           "OTHER_FILES"]
 
 REPORT_FILE, RESULTS_FILE = "compare.md", "compare.json"
+CLIPS_FILE = "compare_clips.npz"
 #: Files of ``out`` besides the tables' NAME.md / NAME.json.
-OTHER_FILES = (REPORT_FILE, RESULTS_FILE, "error_per_frame.png", "compare.usdc", "compare.mp4")
+OTHER_FILES = (REPORT_FILE, RESULTS_FILE, "error_per_frame.png", "compare.usdc", "compare.mp4", CLIPS_FILE)
 
 
 def staging(out: Path) -> Path:
@@ -138,9 +140,12 @@ def _concatenated(per_clip: list) -> list:
 
 
 def write_usd_and_video(clips: list[dict], body_faces, garment_faces, order: list[str], labels: dict,
-                        folder: Path, *, video: bool, meta: dict, progress=None) -> dict:
-    """compare.usdc (the first clip, every method side by side) and, with ``video``, compare.mp4 (the
-    clips one after the other). Returns {"usd": file name, "video": file name}."""
+                        folder: Path, *, video: bool, meta: dict, video_order: list[str] | None = None,
+                        identity: dict | None = None, progress=None) -> dict:
+    """compare.usdc (the first clip, every method side by side) and either compare.mp4 (``video``:
+    the clips one after the other, the methods of ``video_order``, default ``order``) or, without
+    video, compare_clips.npz (what the MP4 needs, :func:`write_clips`, for :func:`render_clips` on a
+    machine that can render). Returns {"usd": file name, "video" or "clips": file name}."""
     from simgen.io.usd import write_usd
 
     per_clip = clip_tracks(clips, body_faces, garment_faces, order)
@@ -149,12 +154,84 @@ def write_usd_and_video(clips: list[dict], body_faces, garment_faces, order: lis
     write_usd(folder / "compare.usdc", tracks, fps=clips[0]["fps"],
               metadata={**meta, **m, "sequence": clips[0]["id"], "labels": names})
     files = {"usd": "compare.usdc"}
+    shown = list(video_order or order)
     if video:
-        from simgen.io.render import render_sequence
-
-        cols = len(order) + 1
-        title = " | ".join(names) + "   clips: " + ", ".join(c["id"] for c in clips)
-        render_sequence(folder / "compare.mp4", _concatenated(per_clip), fps=clips[0]["fps"],
-                        size=(min(1920, 240 * cols), 480), title=title, progress=progress)
+        _render_video(folder / "compare.mp4", clips, body_faces, garment_faces, shown, labels, progress)
         files["video"] = "compare.mp4"
+    else:
+        write_clips(folder / CLIPS_FILE, clips, shown, labels, garment_faces, {**meta, "identity": identity or {}})
+        files["clips"] = CLIPS_FILE
     return files
+
+
+def _render_video(path: Path, clips: list[dict], body_faces, garment_faces, order: list[str], labels: dict,
+                  progress=None) -> None:
+    from simgen.io.render import render_sequence
+
+    per_clip = clip_tracks(clips, body_faces, garment_faces, order)
+    names = ["simulation"] + [labels[k] for k in order]
+    title = " | ".join(names) + "   clips: " + ", ".join(c["id"] for c in clips)
+    render_sequence(path, _concatenated(per_clip), fps=clips[0]["fps"], size=(min(1920, 384 * len(names)), 480),
+                    title=title, progress=progress)
+
+
+# ------------------------------------------------------------------------------------ clips for later rendering
+def write_clips(path: Path, clips: list[dict], order: list[str], labels: dict, garment_faces, meta: dict) -> Path:
+    """compare_clips.npz: each clip's id, fps, body motion (betas (T, B), poses (T, 24, 3) [rad], trans
+    (T, 3) [m]) and the garment [m] (T, V, 3) of the simulation and of each method in ``order``,
+    stored as float16 offsets from the root translation (resolution <= 0.5 mm within 1 m of it); the
+    posed body is not stored (:func:`render_clips` poses it again with the store's body)."""
+    arrays = {"faces": np.asarray(garment_faces, dtype=np.int32)}
+    for k, c in enumerate(clips):
+        root = np.asarray(c["trans"], dtype=np.float32)[:, None]
+        arrays.update({f"c{k}_betas": c["betas"], f"c{k}_poses": c["poses"], f"c{k}_trans": c["trans"],
+                       f"c{k}_simulation": (c["ground_truth"] - root).astype(np.float16)})
+        for key in order:
+            arrays[f"c{k}_{key}"] = (c["predictions"][key] - root).astype(np.float16)
+    info = {"format": "simgen-compare-clips", "version": 1, "order": order,
+            "labels": {k: labels[k] for k in order}, "clips": [{"id": c["id"], "fps": c["fps"]} for c in clips],
+            **meta}
+    np.savez_compressed(path, meta=np.array(json.dumps(info)), **arrays)
+    return path
+
+
+def read_clips(clips_file) -> tuple[dict, list[dict]]:
+    """(info, clips) of a compare_clips.npz (:func:`write_clips`): info holds "order", "labels",
+    "identity", ...; each clip {"id", "fps", "betas", "poses", "trans", "faces", "ground_truth" [m]
+    (T, V, 3), "predictions" {key: [m] (T, V, 3)}} in float32, without the posed body."""
+    path = Path(clips_file)
+    if not path.is_file():
+        raise InputError(f"--clips {path} is not a file")
+    with np.load(path) as z:
+        if "meta" not in z.files:
+            raise InputError(f"{path} is not a compare_clips.npz of `simgen eval compare --no-video`")
+        info = json.loads(str(z["meta"]))
+        arrays = {k: z[k] for k in z.files}
+    clips = []
+    for k, c in enumerate(info["clips"]):
+        root = arrays[f"c{k}_trans"].astype(np.float32)[:, None]
+        clips.append({**c, **{n: arrays[f"c{k}_{n}"] for n in ("betas", "poses", "trans")}, "faces": arrays["faces"],
+                      "ground_truth": arrays[f"c{k}_simulation"].astype(np.float32) + root,
+                      "predictions": {key: arrays[f"c{k}_{key}"].astype(np.float32) + root for key in info["order"]}})
+    return info, clips
+
+
+def render_clips(clips_file, out_mp4, *, body=None, progress=None) -> Path:
+    """compare.mp4 from a compare_clips.npz (:func:`write_clips`): the body re-posed with ``body``
+    (default: the bundled body; its hash must be the store's), the methods side by side, coloured
+    by their error against the simulation, the clips one after the other."""
+    import torch
+
+    from simgen.body.torch_lbs import TorchBody
+    from simgen.learn.data import body_for_identity
+
+    info, clips = read_clips(clips_file)
+    model = body_for_identity(info.get("identity") or {}, body)
+    tb = TorchBody(model)
+    for c in clips:
+        with torch.no_grad():
+            c["body"] = tb(*(torch.as_tensor(c[n], dtype=torch.float32) for n in ("betas", "poses", "trans")))[0].numpy()
+    out = Path(out_mp4)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    _render_video(out, clips, np.asarray(model.faces), clips[0]["faces"], info["order"], info["labels"], progress)
+    return out

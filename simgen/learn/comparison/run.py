@@ -169,10 +169,11 @@ def compare_models(model_dirs, data, out_dir: str | Path | None = None, *, test_
             results["plot_skipped"] = str(exc)
         labels = {c.key: c.label for c in contestants}
         files.update(write_usd_and_video(clips, np.asarray(body_model.faces), data.faces, [c.key for c in contestants],
-                                         labels, stage, video=video,
+                                         labels, stage, video=video, identity=data.identity,
+                                         video_order=[c.key for c in contestants if not c.ablation],
                                          meta={"dataset": str(data.source), "garment": data.garment_name}))
         files["results"] = "compare.json"
-        results.update(files=files, usd_sequence=clips[0]["id"], video_clips=[c["id"] for c in clips] if video else [])
+        results.update(files=files, usd_sequence=clips[0]["id"], video_clips=[c["id"] for c in clips])
         write_results(results, tables, stage)
         publish(stage, Path(out_dir), owned=[f"{t.name}{ext}" for t in tables for ext in (".md", ".json")]
                 + list(OTHER_FILES))
@@ -200,6 +201,29 @@ def _criterion(results: dict) -> str | None:
     return f"{'met' if a < b else 'not met'} ({a:.3f} vs {b:.3f} 1/m)"
 
 
+class _StageClock:
+    """Wall seconds per stage of the per-sequence loop (synchronising the GPU at each lap)."""
+
+    def __init__(self, dev: torch.device):
+        import time
+
+        self._now, self._sync = time.perf_counter, (torch.cuda.synchronize if dev.type == "cuda" else None)
+        self._t, self._totals = 0.0, {}
+
+    def start(self) -> None:
+        self._t = self._now()
+
+    def lap(self, stage: str) -> None:
+        if self._sync is not None:
+            self._sync()
+        t = self._now()
+        self._totals[stage] = self._totals.get(stage, 0.0) + t - self._t
+        self._t = t
+
+    def totals(self) -> dict:
+        return {k: round(v, 2) for k, v in self._totals.items()}
+
+
 @torch.no_grad()
 def _measure(data, split, groups, contestants, body_model, dev, inside_stride: int, progress) -> dict:
     """Per-sequence and aggregated metrics (the results dict without timing and costs), plus "_clips"."""
@@ -215,14 +239,17 @@ def _measure(data, split, groups, contestants, body_model, dev, inside_stride: i
     clip_ids = pick_clips(groups, data)
     total = sum(len(v) for v in groups.values())
     per_seq, clips, physics_info, done = {}, [], None, 0
+    clock = _StageClock(dev)
     for group, ids in groups.items():
         for sid in ids:
             s = data.sequences[sid]
+            clock.start()
             b, p, t = (torch.as_tensor(x, dtype=torch.float32, device=dev) for x in (s.betas, s.poses, s.trans))
             bv, _, a = tb(b, p, t)
             # On ``dev`` (the curvature of every method and frame is most of this loop's arithmetic).
             on_dev = {c.key: c.predict(b, p, t, s.fps, a) for c in contestants}
             preds = {k: x.cpu().numpy() for k, x in on_dev.items()}
+            clock.lap("predict")
             gt = s.vertices
             gt_dev = torch.as_tensor(gt, device=dev)
             h_gt = M.mean_curvature(gt_dev, data.faces)
@@ -237,6 +264,7 @@ def _measure(data, split, groups, contestants, body_model, dev, inside_stride: i
                     on_dev[k], gt_dev, data.faces, interior, reference_curvature=h_gt)]
             row["error_cm"] = {k: float(np.mean(v)) for k, v in row["error_cm_per_frame"].items()}
             row["curvature_error"] = {k: float(np.mean(v)) for k, v in row["curvature_error_per_frame"].items()}
+            clock.lap("errors_and_curvature")
             bv_np = bv.cpu().numpy()
             inside: dict[str, list] = {}
             for f in range(0, s.num_frames, inside_stride):
@@ -245,14 +273,17 @@ def _measure(data, split, groups, contestants, body_model, dev, inside_stride: i
                     inside.setdefault(k, []).append(frac)
             row["_inside"] = inside
             row["inside_percent"] = {k: 100.0 * float(np.mean(v)) for k, v in inside.items()}
+            clock.lap("inside")
             phys = _physics_terms(data, [{"fps": s.fps, "body_vertices": bv_np,
                                           "sets": {SIMULATION: gt, **preds}}], body_model, dev)
+            clock.lap("physics")
             if "skipped" not in phys:
                 physics_info = phys.pop("terms_info")
                 row["physics"] = phys
             per_seq[sid] = row
             if sid in clip_ids:
-                clips.append({"id": sid, "fps": s.fps, "body": bv_np, "ground_truth": gt, "predictions": preds})
+                clips.append({"id": sid, "fps": s.fps, "body": bv_np, "ground_truth": gt, "predictions": preds,
+                              "betas": s.betas, "poses": s.poses, "trans": s.trans})
             done += 1
             if progress is not None:
                 progress(done, total)
@@ -265,6 +296,7 @@ def _measure(data, split, groups, contestants, body_model, dev, inside_stride: i
         "groups": {g: _aggregate(per_seq, v, keys) for g, v in groups.items()},
         "overall": _aggregate(per_seq, all_ids, keys),
         "physics_info": physics_info,
+        "stage_seconds": clock.totals(),
         "_clips": sorted(clips, key=lambda c: clip_ids.index(c["id"])),
     }
     for row in per_seq.values():
