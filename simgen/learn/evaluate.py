@@ -151,32 +151,43 @@ def _physics_terms(data: GarmentData, runs: list[dict], body, device) -> dict:
 # ------------------------------------------------------------------------------------ timing
 @torch.no_grad()
 def time_inference(model: GarmentModel, betas, poses, trans, fps: float, *, device, postprocess: bool,
-                   frames: int = 100, warmup: int = 10) -> dict:
+                   frames: int = 100, warmup: int = 10, cuda_graph: bool = False) -> dict:
     """Milliseconds per frame of frame-by-frame inference of one garment (thesis Table 4.1).
 
     Per frame: body joint transforms, R_G, one GRU step, garment skinning; with the post-process
-    also the posed body and the push-out. Returns {"mean_ms", "std_ms", "median_ms", "frames"}.
+    also the posed body and the push-out. cuda_graph: replay each frame from a CUDA graph
+    (:class:`simgen.learn.streaming.GraphedStream`; CUDA only, without the post-process), the inputs'
+    copy into the graph included. Returns {"mean_ms", "std_ms", "median_ms", "frames", "cuda_graph"}.
     """
     dev = torch.device(device)
+    if cuda_graph and (dev.type != "cuda" or postprocess):
+        raise InputError("timing with a CUDA graph needs a CUDA device and no post-process")
     model = model.to(dev)
     b = torch.as_tensor(betas, dtype=torch.float32, device=dev)
     p = torch.as_tensor(poses, dtype=torch.float32, device=dev)
     t = torch.as_tensor(trans, dtype=torch.float32, device=dev)
     n = len(p)
-    state = StreamState()
+    if cuda_graph:
+        from simgen.learn.streaming import GraphedStream
+
+        stream = GraphedStream(model, fps)
+        frame = lambda i: stream.step(b[i:i + 1], p[i:i + 1], t[i:i + 1])  # noqa: E731
+    else:
+        state = StreamState()
+        frame = lambda i: model.step(state, b[i:i + 1], p[i:i + 1], t[i:i + 1], fps,  # noqa: E731
+                                     postprocess=postprocess)
     times = []
     sync = torch.cuda.synchronize if dev.type == "cuda" else (lambda: None)
     for k in range(warmup + frames):
-        i = k % n
         sync()
         t0 = time.perf_counter()
-        model.step(state, b[i:i + 1], p[i:i + 1], t[i:i + 1], fps, postprocess=postprocess)
+        frame(k % n)
         sync()
         if k >= warmup:
             times.append((time.perf_counter() - t0) * 1e3)
     a = np.asarray(times)
     return {"mean_ms": float(a.mean()), "std_ms": float(a.std()), "median_ms": float(np.median(a)),
-            "frames": int(len(a))}
+            "frames": int(len(a)), "cuda_graph": bool(cuda_graph)}
 
 
 # ------------------------------------------------------------------------------------ main entry
@@ -317,6 +328,9 @@ def evaluate_garment(model_dir: str | Path, data: GarmentData, out_dir: str | Pa
                                                       postprocess=False, frames=timing_frames),
                 "with_postprocess": time_inference(model, s.betas, s.poses, s.trans, s.fps, device=d,
                                                    postprocess=True, frames=timing_frames),
+                **({"without_postprocess_cuda_graph": time_inference(
+                    model, s.betas, s.poses, s.trans, s.fps, device=d, postprocess=False, frames=timing_frames,
+                    cuda_graph=True)} if d == "cuda" else {}),
                 "threads": torch.get_num_threads() if d == "cpu" else None,
                 "device_name": torch.cuda.get_device_name() if d == "cuda" else _cpu_name(),
             }
@@ -440,6 +454,9 @@ def format_summary(metrics: dict) -> str:
             label = f"ours, {d} ({row.get('device_name') or ''})"[:40]
             lines.append(f"{label:40s}{row['without_postprocess']['mean_ms']:18.2f}"
                          f"{row['with_postprocess']['mean_ms']:18.2f}")
+            if "without_postprocess_cuda_graph" in row:
+                lines.append(f"{'  the same, replayed from a CUDA graph':40s}"
+                             f"{row['without_postprocess_cuda_graph']['mean_ms']:18.2f}{'-':>18s}")
     size = metrics.get("size_mb") or {}
     if size:
         lines.append("")

@@ -153,6 +153,11 @@ def compare_models(model_dirs, data, out_dir: str | Path | None = None, *, test_
                                                                first.fps, device=dev, postprocess=False,
                                                                frames=timing_frames, warmup=warmup)
                                          for c in contestants}}
+        if dev.type == "cuda":
+            results["timing"]["methods_cuda_graph"] = {
+                c.key: time_inference(c.stepper(), first.betas, first.poses, first.trans, first.fps, device=dev,
+                                      postprocess=False, frames=timing_frames, warmup=warmup, cuda_graph=True)
+                for c in contestants}
         results["generation"] = M.generation_seconds(data.source) if data.source else {
             "seconds": None, "reason": "the data was not read from a store"}
         results.update(warnings=warnings, inside_stride=inside_stride)

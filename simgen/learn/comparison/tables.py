@@ -148,20 +148,23 @@ def _hours(seconds) -> str | None:
 
 def _cost_table(results: dict) -> Table:
     labels = _labels(results)
+    timing = results.get("timing") or {}
+    graphed = timing.get("methods_cuda_graph") or {}
     cols = [("method", "method"), ("data", "data generation"), ("train", "training"),
-            ("runtime", "runtime [ms/frame]"), ("size", "model size [MB]")]
+            ("runtime", "runtime [ms/frame]"), *([("runtime_graph", "CUDA graph [ms/frame]")] if graphed else []),
+            ("size", "model size [MB]")]
     rows = [{"method": f"thesis Table 5.3: {r['method']}", "data": f"{r['data_h']:g} h", "train": f"{r['train_h']:g} h",
              "runtime": r["runtime_ms"], "size": r["size_mb"]} for r in THESIS_TABLES["cost"]]
     gen = results.get("generation") or {}
     data_time = _hours(gen.get("seconds")) if gen.get("seconds") is not None else "n/a (not recorded in the store)"
-    timing = results.get("timing") or {}
     for c in results["contestants"]:
         key = c["key"]
         t = (timing.get("methods") or {}).get(key) or {}
         rows.append({"method": labels[key], "data": data_time if c["uses_data"] else "0 (no simulated data)",
                      "train": ("0 (no training)" if c["kind"] == "lbs" else
                                _hours(c.get("train_seconds")) or "n/a (no log.csv)"),
-                     "runtime": t.get("mean_ms"), "size": c["size_mb"]})
+                     "runtime": t.get("mean_ms"), "size": c["size_mb"],
+                     **({"runtime_graph": (graphed.get(key) or {}).get("mean_ms")} if graphed else {})})
     sim_ms = gen.get("ms_per_frame")
     rows.append({"method": "simulation (the dataset's solver)", "data": "-", "train": "-",
                  "runtime": sim_ms, "size": None})
@@ -171,12 +174,14 @@ def _cost_table(results: dict) -> Table:
              + f"), {timing.get('frames', '?')} frames "
              f"after {timing.get('warmup', '?')} warm-up frames; training time from each folder's log.csv; data "
              "generation from the store's metadata (the wall time of every fit and sequence, all of the store, "
-             "whichever part a model trained on); model size: float32 parameters, 1 MB = 1e6 bytes.",
+             "whichever part a model trained on); model size: float32 parameters, 1 MB = 1e6 bytes."
+             + (" CUDA graph: the same frames replayed from one recorded frame (simgen.learn.streaming), the "
+                "inputs' copy included." if graphed else ""),
              "Simulation runtime: the store's wall time per stored frame (start protocol included)"
              + ("" if sim_ms is not None else f": {gen.get('reason', 'not recorded')}") + ".",
              f"Thesis rows: thesis Table 5.3 ({THESIS_TABLES['hardware']}), not measured here."]
     return Table("cost", "Data generation, training, runtime and size (thesis Table 5.3)", cols, rows,
-                 formats={"runtime": ".3g", "size": ".4g"}, notes=notes)
+                 formats={"runtime": ".3g", "runtime_graph": ".3g", "size": ".4g"}, notes=notes)
 
 
 def _error_tables(results: dict) -> list[Table]:
