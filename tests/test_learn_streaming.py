@@ -61,4 +61,4 @@ def test_graphed_frames_equal_the_eager_frames(snug_model):
         assert torch.allclose(eager, replay, atol=1e-5), i
         frames.append(replay.clone())
     assert graphed.graph is not None  # frames 1.. were replays
-    assert float((frames[-1] - frames[1]).abs().max()) > 0.05  # and they followed the body
+    assert float((frames[-1] - frames[1]).abs().max()) > 1e-3  # and they advanced (GRU state, pose)

@@ -50,6 +50,7 @@ PARSE_ONLY: list[tuple[tuple[str, ...] | str, str]] = [
                  "and tests/test_snug.py"),
     (("eval", "garment"), "needs a model trained by `simgen train fit|wrinkle` (tests/test_examples.py)"),
     (("eval", "compare"), "needs trained models (`simgen train ...`)"),
+    (("eval", "compare-video"), "needs an `eval compare --no-video` output (rendered in tests/test_eval_compare.py)"),
     (("eval", "softtissue"), "needs models trained by `simgen train softtissue` (tests/test_softtissue_models.py)"),
     (("export", "softtissue"), "needs a soft-tissue store (run in tests/test_softtissue_models.py on its data)"),
     (("view",), "starts a web server that runs until stopped"),
@@ -212,7 +213,7 @@ def resolve(word: str, prev: str, path: tuple[str, ...], world: World) -> str:
             return str(world.root / "no-model")
         return world.fresh("dir")
     if name in ("FILE", "FILE.usdc", "FILE.obj", "PATH", "SOURCE", "SEQ", "SPEC", "CLIP", "M", "NAME", "N", "S",
-                "ADDR", "SMPL_FILE", "COMMAND"):
+                "ADDR", "SMPL_FILE", "COMMAND", "MP4"):
         table = {
             "FILE.obj": str(world.obj),
             "FILE.usdc": world.fresh("body.usdc"),
@@ -225,6 +226,7 @@ def resolve(word: str, prev: str, path: tuple[str, ...], world: World) -> str:
             "ADDR": "127.0.0.1:6379",
             "SMPL_FILE": str(world.root / "SMPL_FILE.npz"),
             "COMMAND": "motion list",
+            "MP4": world.fresh("compare.mp4"),
         }
         if name == "FILE":
             return str(world.motion_file) if path[:2] == ("motion", "import") else world.fresh("open.npz")

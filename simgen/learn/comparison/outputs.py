@@ -166,13 +166,15 @@ def write_usd_and_video(clips: list[dict], body_faces, garment_faces, order: lis
 
 def _render_video(path: Path, clips: list[dict], body_faces, garment_faces, order: list[str], labels: dict,
                   progress=None) -> None:
-    from simgen.io.render import render_sequence
+    from simgen.io.render import follow_cameras, render_sequence
 
     per_clip = clip_tracks(clips, body_faces, garment_faces, order)
     names = ["simulation"] + [labels[k] for k in order]
     title = " | ".join(names) + "   clips: " + ", ".join(c["id"] for c in clips)
-    render_sequence(path, _concatenated(per_clip), fps=clips[0]["fps"], size=(min(1920, 384 * len(names)), 480),
-                    title=title, progress=progress)
+    tracks, size = _concatenated(per_clip), (min(1920, 384 * len(names)), 480)
+    # From the front, so that every copy in the row is drawn at the same size.
+    cameras = follow_cameras(tracks, aspect=size[0] / size[1], fps=clips[0]["fps"], azimuth=0.0, elevation=5.0)
+    render_sequence(path, tracks, fps=clips[0]["fps"], size=size, camera=cameras, title=title, progress=progress)
 
 
 # ------------------------------------------------------------------------------------ clips for later rendering
