@@ -112,10 +112,13 @@ def _supervised_contestant(folder: Path, identity: dict, body, device) -> Contes
                                                                                   ("wrinkle", WRINKLE_DIR))
              if (folder / sub / "config.json").is_file()}
     size = model_size_mb(model.fit) + (model_size_mb(model.wrinkle) if model.wrinkle is not None else 0.0)
-    return Contestant(_slug(f"supervised_{folder.name}"), f"supervised ch. 4, {parts} ({folder.name})", "supervised",
-                      folder, model, facts={"method": f"ch. 4 supervised ({parts})", **facts},
+    split = load_split(folder)
+    # How much data it saw is part of its name: a model of a store subset must not pass for the full one.
+    seen = f", {len(split.train_sequences)} training sequences" if split is not None else ""
+    return Contestant(_slug(f"supervised_{folder.name}"), f"supervised ch. 4, {parts} ({folder.name}{seen})",
+                      "supervised", folder, model, facts={"method": f"ch. 4 supervised ({parts})", **facts},
                       logs=[folder / FIT_DIR / "log.csv", folder / WRINKLE_DIR / "log.csv"],
-                      split=load_split(folder), size_mb=size, uses_data=True)
+                      split=split, size_mb=size, uses_data=True)
 
 
 def load_contestants(folders, identity: dict, *, body=None, device="cpu") -> list[Contestant]:
