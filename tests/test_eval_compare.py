@@ -95,7 +95,8 @@ def test_eval_compare_writes_every_table(store, models, tmp_path, capsys):
     for name in TABLES:
         assert (out / f"{name}.md").is_file() and (out / f"{name}.json").is_file(), name
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".compare.partial")]  # the staging is gone
-    labels = ["SNUG", "SNUG w/o bending", "vertex-L2 GRU", "supervised ch. 4, fit + wrinkle (supervised, 2 training sequences)", "LBS"]
+    labels = ["SNUG", "SNUG w/o bending", "vertex-L2 GRU",
+              "supervised ch. 4, fit + wrinkle (supervised, 2 training sequences)", "LBS"]
 
     physics, _ = _table(out, "physics")
     assert [c["key"] for c in physics["columns"]] == ["method", "strain", "bending", "gravity", "inertia", "collision",

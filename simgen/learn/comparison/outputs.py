@@ -1,6 +1,6 @@
 """What ``simgen eval compare`` writes: tables (Markdown + JSON), the per-frame error plot, the
-side-by-side USD and the MP4 (or, with --no-video, the clips the MP4 needs), all into a staging folder that is moved into --out only when every
-file is written (a failure leaves --out as it was)."""
+side-by-side USD and the MP4 (or, with --no-video, the clips the MP4 needs), all into a staging
+folder that is moved into --out only when every file is written (a failure leaves --out as it was)."""
 
 from __future__ import annotations
 
@@ -15,8 +15,8 @@ import numpy as np
 from simgen.errors import InputError
 
 __all__ = ["staging", "publish", "write_tables", "write_results", "plot_error_per_frame", "clip_tracks",
-           "write_usd_and_video", "write_clips", "read_clips", "render_clips", "REPORT_FILE", "RESULTS_FILE", "CLIPS_FILE",
-           "OTHER_FILES"]
+           "write_usd_and_video", "write_clips", "read_clips", "render_clips", "REPORT_FILE", "RESULTS_FILE",
+           "CLIPS_FILE", "OTHER_FILES"]
 
 REPORT_FILE, RESULTS_FILE = "compare.md", "compare.json"
 CLIPS_FILE = "compare_clips.npz"
@@ -232,7 +232,8 @@ def render_clips(clips_file, out_mp4, *, body=None, progress=None) -> Path:
     tb = TorchBody(model)
     for c in clips:
         with torch.no_grad():
-            c["body"] = tb(*(torch.as_tensor(c[n], dtype=torch.float32) for n in ("betas", "poses", "trans")))[0].numpy()
+            motion = (torch.as_tensor(c[n], dtype=torch.float32) for n in ("betas", "poses", "trans"))
+            c["body"] = tb(*motion)[0].numpy()
     out = Path(out_mp4)
     out.parent.mkdir(parents=True, exist_ok=True)
     _render_video(out, clips, np.asarray(model.faces), clips[0]["faces"], info["order"], info["labels"], progress)
