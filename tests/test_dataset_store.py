@@ -557,6 +557,28 @@ def test_ray_local_matches_local(tiny, tmp_path):
     np.testing.assert_allclose(remote.template["smoothed"], local.template["smoothed"], atol=1e-5)
 
 
+def test_ray_worker_killed_mid_task_is_replaced(tiny, tmp_path):
+    """A Ray worker killed by SIGKILL right after its task committed a node (no exception, no
+    cleanup): Ray runs the task again on a fresh worker, which keeps the committed node and
+    simulates the rest; the store is complete, passes the check and equals the local one."""
+    pytest.importorskip("ray")
+    out = tmp_path / "ray-kill"
+    spec = load_spec("tiny").with_overrides(motions=["walk_fast"], batch_size=2)
+    os.environ["SIMGEN_DATASET_KILL_ONCE"] = str(tmp_path / "kill-marker")
+    try:
+        (rep,) = generate_dataset(spec, out=str(out), ray="local")
+    finally:
+        del os.environ["SIMGEN_DATASET_KILL_ONCE"]
+    assert (tmp_path / "kill-marker").exists()  # a worker did die mid-task
+    assert rep.pending == 0 and not rep.failed
+    assert check_dataset(out).passed
+    local, remote = open_dataset(tiny["out"]), open_dataset(out)
+    assert remote.sequence_ids() == ["walk_fast__b1p2", "walk_fast__zero"]
+    for sid in remote.sequence_ids():
+        np.testing.assert_allclose(remote.sequence(sid)["garment_vertices"], local.sequence(sid)["garment_vertices"],
+                                   atol=1e-5)
+
+
 def test_object_store_commit_markers():
     """fsspec URLs (no rename): nodes are written in place and committed last; a node without its
     marker is a leftover that the next run deletes, a committed node missing from the manifest is

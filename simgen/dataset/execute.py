@@ -361,6 +361,7 @@ class _Writes:
         self.outcomes.append(outcome)
         if self.on_outcome is not None:
             self.on_outcome(outcome)
+        _injected_kill()
 
     def close(self) -> None:
         """Wait for the writes submitted (each is committed or not: the store stays consistent)."""
@@ -484,6 +485,23 @@ def _injected_fault() -> None:
         except FileExistsError:
             return
         raise RuntimeError("injected fault (SIMGEN_DATASET_FAULT_ONCE)")
+
+
+def _injected_kill() -> None:
+    # Testing hook for a worker lost mid-task: with SIMGEN_DATASET_KILL_ONCE=FILE the first process to
+    # find FILE missing after a node of its task is committed creates it and dies by SIGKILL (no
+    # exception, no cleanup: what a killed Ray worker or an out-of-memory kill leaves).
+    import os
+    import signal
+
+    marker = os.environ.get("SIMGEN_DATASET_KILL_ONCE")
+    if marker:
+        try:
+            with open(marker, "x"):
+                pass
+        except FileExistsError:
+            return
+        os.kill(os.getpid(), signal.SIGKILL)
 
 
 def _node_rel(job: Job) -> str:
