@@ -261,3 +261,15 @@ def test_clips_file_keeps_the_garments_and_renders_elsewhere(data, tmp_path, cap
         code, _, err = run(["eval", "compare-video", "--clips", str(path), "--out", str(tmp_path / "c.mp4")], capsys)
         assert code == 0, err
         assert (tmp_path / "c.mp4").stat().st_size > 1000
+
+
+def test_snug_trained_with_its_own_physics_is_labelled_so(data, models, tmp_path):
+    """A SNUG trained with the thesis's own loss parameters (`--physics snug`) sits beside the one
+    trained with the store's: its own row, named for its physics."""
+    from simgen.learn.comparison.contestants import load_contestants
+    from simgen.learn.snug import SnugConfig, train_snug
+
+    tiny = SnugConfig(hidden=16, layers=2, batch_size=2, window_stride=90, val_windows=0, epochs=1, physics="snug")
+    train_snug(GARMENT, tmp_path / "snug_own", motions=["walk"], config=tiny)
+    rows = load_contestants([models["snug"], tmp_path / "snug_own"], data.identity)
+    assert [(c.key, c.label) for c in rows] == [("snug", "SNUG"), ("snug_snug_physics", "SNUG (SNUG's physics)")]

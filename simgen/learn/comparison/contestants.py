@@ -98,6 +98,8 @@ def _snug_contestant(folder: Path, identity: dict, body, device) -> Contestant:
     off = tuple(t for t in ABLATION_TERMS if config.get(t) is False)
     label = "SNUG" if not off else "SNUG w/o " + ", ".join(off)
     key = "snug" if not off else "snug_no_" + "_".join(off)
+    if (facts.get("physics") or {}).get("source") == "snug":  # the thesis's own loss parameters
+        label, key = label + " (SNUG's physics)", key + "_snug_physics"
     return Contestant(key, label, "snug", folder, model, ablation=off, facts=facts, logs=[sub / "log.csv"],
                       size_mb=model_size_mb(model.net))
 
