@@ -44,6 +44,7 @@ def test_a_graphed_stream_needs_cuda(snug_model):
         time_inference(snug_model, b, p, t, fps, device="cpu", postprocess=False, cuda_graph=True)
 
 
+@pytest.mark.gpu
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a GPU")
 def test_graphed_frames_equal_the_eager_frames(snug_model):
     from simgen.learn.comparison.metrics import SnugStepper
