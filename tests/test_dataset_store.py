@@ -534,42 +534,18 @@ def test_info_and_export(tiny, tmp_path):
     assert paths["mp4"].stat().st_size > 1000
 
 
-def test_ray_local_matches_local(tiny, tmp_path):
-    """`--ray local`: one pool per Ray task on this machine's CPUs (the template and fits in one, the
-    sequences dealt out), a task that fails once is retried, and the store equals the locally
-    generated one."""
+def _ray_run_with(hook: str, spec, tiny, tmp_path):
+    """`--ray local` on the walk_fast sequences of `tiny` with the testing hook ``hook`` (an
+    environment variable naming a marker file) set; asserts that the hook fired and that the store
+    is complete, passes the check and equals the locally generated one. Returns the report."""
     pytest.importorskip("ray")
-    out = tmp_path / "ray"
-    spec = load_spec("tiny").with_overrides(motions=["walk_fast"], batch_size=1)
-    os.environ["SIMGEN_DATASET_FAULT_ONCE"] = str(tmp_path / "fault-marker")
+    out, marker = tmp_path / "ray", tmp_path / "hook-marker"
+    os.environ[hook] = str(marker)
     try:
         (rep,) = generate_dataset(spec, out=str(out), ray="local")
     finally:
-        del os.environ["SIMGEN_DATASET_FAULT_ONCE"]
-    assert (tmp_path / "fault-marker").exists()  # one task did fail and was retried by Ray
-    assert rep.pending == 0 and not rep.failed and rep.written == 2
-    assert check_dataset(out).passed
-    local, remote = open_dataset(tiny["out"]), open_dataset(out)
-    assert remote.sequence_ids() == ["walk_fast__b1p2", "walk_fast__zero"]
-    for sid in remote.sequence_ids():
-        np.testing.assert_allclose(remote.sequence(sid)["garment_vertices"], local.sequence(sid)["garment_vertices"],
-                                   atol=1e-5)
-    np.testing.assert_allclose(remote.template["smoothed"], local.template["smoothed"], atol=1e-5)
-
-
-def test_ray_worker_killed_mid_task_is_replaced(tiny, tmp_path):
-    """A Ray worker killed by SIGKILL right after its task committed a node (no exception, no
-    cleanup): Ray runs the task again on a fresh worker, which keeps the committed node and
-    simulates the rest; the store is complete, passes the check and equals the local one."""
-    pytest.importorskip("ray")
-    out = tmp_path / "ray-kill"
-    spec = load_spec("tiny").with_overrides(motions=["walk_fast"], batch_size=2)
-    os.environ["SIMGEN_DATASET_KILL_ONCE"] = str(tmp_path / "kill-marker")
-    try:
-        (rep,) = generate_dataset(spec, out=str(out), ray="local")
-    finally:
-        del os.environ["SIMGEN_DATASET_KILL_ONCE"]
-    assert (tmp_path / "kill-marker").exists()  # a worker did die mid-task
+        del os.environ[hook]
+    assert marker.exists()  # the injected failure did happen
     assert rep.pending == 0 and not rep.failed
     assert check_dataset(out).passed
     local, remote = open_dataset(tiny["out"]), open_dataset(out)
@@ -577,6 +553,25 @@ def test_ray_worker_killed_mid_task_is_replaced(tiny, tmp_path):
     for sid in remote.sequence_ids():
         np.testing.assert_allclose(remote.sequence(sid)["garment_vertices"], local.sequence(sid)["garment_vertices"],
                                    atol=1e-5)
+    np.testing.assert_allclose(remote.template["smoothed"], local.template["smoothed"], atol=1e-5)
+    return rep
+
+
+def test_ray_local_matches_local(tiny, tmp_path):
+    """`--ray local`: one pool per Ray task on this machine's CPUs (the template and fits in one, the
+    sequences dealt out), a task that fails once is retried, and the store equals the locally
+    generated one."""
+    spec = load_spec("tiny").with_overrides(motions=["walk_fast"], batch_size=1)
+    rep = _ray_run_with("SIMGEN_DATASET_FAULT_ONCE", spec, tiny, tmp_path)
+    assert rep.written == 2
+
+
+def test_ray_worker_killed_mid_task_is_replaced(tiny, tmp_path):
+    """A Ray worker killed by SIGKILL right after its task committed a node (no exception, no
+    cleanup): Ray runs the task again on a fresh worker, which keeps the committed node and
+    simulates the rest; the store is complete, passes the check and equals the local one."""
+    _ray_run_with("SIMGEN_DATASET_KILL_ONCE", load_spec("tiny").with_overrides(motions=["walk_fast"], batch_size=2),
+                  tiny, tmp_path)
 
 
 def test_object_store_commit_markers():

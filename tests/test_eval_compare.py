@@ -257,6 +257,9 @@ def test_clips_file_keeps_the_garments_and_renders_elsewhere(data, tmp_path, cap
         np.testing.assert_array_equal(b["poses"], a["poses"])
     with pytest.raises(InputError, match="is not a file"):
         read_clips(tmp_path / "missing.npz")
+    (tmp_path / "text.npz").write_text("not an archive")
+    with pytest.raises(InputError, match="is not a compare_clips.npz"):
+        read_clips(tmp_path / "text.npz")
     if _can_render():
         code, _, err = run(["eval", "compare-video", "--clips", str(path), "--out", str(tmp_path / "c.mp4")], capsys)
         assert code == 0, err

@@ -62,4 +62,6 @@ def test_graphed_frames_equal_the_eager_frames(snug_model):
         assert torch.allclose(eager, replay, atol=1e-5), i
         frames.append(replay.clone())
     assert graphed.graph is not None  # frames 1.. were replays
+    with pytest.raises(InputError, match="keeps the shapes it was recorded with"):
+        graphed.step(b[:2], p[:2], t[:2])  # two bodies in a stream recorded for one
     assert float((frames[-1] - frames[1]).abs().max()) > 1e-3  # and they advanced (GRU state, pose)

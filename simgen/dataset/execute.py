@@ -472,35 +472,34 @@ def _memory_high(device: str) -> int | None:
     return int(wp.get_mempool_used_mem_high(device))
 
 
-def _injected_fault() -> None:
-    # Testing hook for task retries: with SIMGEN_DATASET_FAULT_ONCE=FILE the first batch to find FILE
-    # missing creates it and fails, as a worker that crashed would.
+def _claims_injection(variable: str) -> bool:
+    """Testing hooks: True for the first process to find the file named by the environment
+    ``variable`` missing (it creates it, so the injection happens once per run)."""
     import os
 
-    marker = os.environ.get("SIMGEN_DATASET_FAULT_ONCE")
-    if marker:
-        try:
-            with open(marker, "x"):
-                pass
-        except FileExistsError:
-            return
+    marker = os.environ.get(variable)
+    if not marker:
+        return False
+    try:
+        with open(marker, "x"):
+            return True
+    except FileExistsError:
+        return False
+
+
+def _injected_fault() -> None:
+    # SIMGEN_DATASET_FAULT_ONCE=FILE: the first batch fails at its start, as a crashed task would.
+    if _claims_injection("SIMGEN_DATASET_FAULT_ONCE"):
         raise RuntimeError("injected fault (SIMGEN_DATASET_FAULT_ONCE)")
 
 
 def _injected_kill() -> None:
-    # Testing hook for a worker lost mid-task: with SIMGEN_DATASET_KILL_ONCE=FILE the first process to
-    # find FILE missing after a node of its task is committed creates it and dies by SIGKILL (no
+    # SIMGEN_DATASET_KILL_ONCE=FILE: the first process to commit a node then dies by SIGKILL (no
     # exception, no cleanup: what a killed Ray worker or an out-of-memory kill leaves).
-    import os
-    import signal
+    if _claims_injection("SIMGEN_DATASET_KILL_ONCE"):
+        import os
+        import signal
 
-    marker = os.environ.get("SIMGEN_DATASET_KILL_ONCE")
-    if marker:
-        try:
-            with open(marker, "x"):
-                pass
-        except FileExistsError:
-            return
         os.kill(os.getpid(), signal.SIGKILL)
 
 

@@ -51,6 +51,10 @@ class GraphedStream:
             return self.model.step(self.state, betas, pose, trans, self.fps, postprocess=False)
         if self.graph is None:
             self._record(betas, pose, trans)
+        for name, buf, x in zip(("betas", "pose", "trans"), self._inputs, (betas, pose, trans)):
+            if x.shape != buf.shape:
+                raise InputError(f"a graphed stream keeps the shapes it was recorded with: {name} has shape "
+                                 f"{tuple(x.shape)}, the recording {tuple(buf.shape)} (start a new stream)")
         for buf, x in zip(self._inputs, (betas, pose, trans)):
             buf.copy_(x)
         self.graph.replay()

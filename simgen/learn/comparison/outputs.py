@@ -204,11 +204,17 @@ def read_clips(clips_file) -> tuple[dict, list[dict]]:
     path = Path(clips_file)
     if not path.is_file():
         raise InputError(f"--clips {path} is not a file")
-    with np.load(path) as z:
-        if "meta" not in z.files:
-            raise InputError(f"{path} is not a compare_clips.npz of `simgen eval compare --no-video`")
-        info = json.loads(str(z["meta"]))
-        arrays = {k: z[k] for k in z.files}
+    import zipfile
+
+    not_clips = InputError(f"{path} is not a compare_clips.npz of `simgen eval compare --no-video`")
+    try:
+        with np.load(path) as z:
+            if "meta" not in z.files:
+                raise not_clips
+            info = json.loads(str(z["meta"]))
+            arrays = {k: z[k] for k in z.files}
+    except (OSError, ValueError, zipfile.BadZipFile):  # not an npz archive at all
+        raise not_clips from None
     clips = []
     for k, c in enumerate(info["clips"]):
         root = arrays[f"c{k}_trans"].astype(np.float32)[:, None]
