@@ -65,8 +65,10 @@ def collider_kernels(scalar) -> SimpleNamespace:
         part_masks: wp.array(dtype=wp.int32),
         use_parts: int,
         pinch_distance: float,
+        touch_distance: float,
         depth_before: wp.array(dtype=scalar),
         count_inside: wp.array(dtype=wp.int32),
+        touching: wp.array(dtype=wp.int32),
     ):
         i = wp.tid()
         inst = vertex_instance[i]
@@ -77,6 +79,8 @@ def collider_kernels(scalar) -> SimpleNamespace:
         if use_parts != 0:
             home = vertex_part[i]
         found, d, n, face, bu, bv, own = body_contact(mesh, part_masks, home, x[i], query_distance, pinch_distance)
+        if found != 0 and d < scalar(touch_distance) and touching.shape[0] > 0:
+            touching[i] = 1
         if found == 0 or d >= zero:
             return
         wp.atomic_max(depth_before, inst, -d)
@@ -269,7 +273,8 @@ class BodyCollider:
                              f"but the body has {self.num_body_faces}: build the model on the body it is simulated with")
 
     def project(self, model, state, *, offset: float = 0.0, query_distance: float = 0.05,
-                pinch_distance: float = ContactParams.pinch_distance, depth=None, count=None) -> None:
+                pinch_distance: float = ContactParams.pinch_distance, depth=None, count=None,
+                touching=None, touch_distance: float = ContactParams.margin) -> None:
         """Push every free cloth vertex inside its body (signed distance < 0) onto the surface.
 
         model: the ClothModel; state: its ClothState, modified in place: the position moves along
@@ -279,16 +284,21 @@ class BodyCollider:
         (:class:`ContactParams`; with :attr:`part_masks` and a model with home parts, cloth on its own
         part is not pushed out of another part pressing into it). Optional outputs, (I,) per instance, accumulated with max/add:
         depth [m] (model scalar) of the deepest vertex before projection, count (int32) of vertices
-        found inside (pinned ones included, though they are not moved).
+        found inside (pinned ones included, though they are not moved). touching: optional (V,) int32,
+        set to 1 (never reset here) for every vertex within ``touch_distance`` [m] of its body before
+        projection, inside included (the impact filter's kinematic vertices).
         """
         self.check_model(model)
         if depth is None:
             depth = wp.zeros(model.num_instances, dtype=model.scalar, device=model.device)
         if count is None:
             count = wp.zeros(model.num_instances, dtype=wp.int32, device=model.device)
+        if touching is None:
+            touching = wp.empty(0, dtype=wp.int32, device=model.device)
         wp.launch(collider_kernels(model.scalar).project, dim=model.num_vertices, device=model.device, inputs=[
             state.positions, state.velocities, model.vertex_instance, model.vertex_pinned, self.mesh_ids,
-            offset, query_distance, *part_inputs(model, self.part_masks, pinch_distance), depth, count])
+            offset, query_distance, *part_inputs(model, self.part_masks, pinch_distance), float(touch_distance),
+            depth, count, touching])
 
     def penetration(self, model, positions, *, query_distance: float = 0.05,
                     pinch_distance: float = ContactParams.pinch_distance) -> tuple[np.ndarray, np.ndarray]:

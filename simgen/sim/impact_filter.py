@@ -22,7 +22,14 @@ time of impact of Li et al. (2021)'s additive CCD:
    mean velocity, so the zone's momentum is kept and nothing inside it moves relative to anything
    else in it. Zones only grow within a substep; they are translated, not rotated, so spin inside a
    zone is lost (an inelastic impact). Pinned vertices keep their own motion and a zone with any
-   follows them. Moving zones changes the paths, so detection repeats, at most ``rounds`` times.
+   follows them. A zone without any follows its vertices that touch the body (found within the
+   contact margin by this substep's body projection): its displacement is their mean, the body's
+   push, and a single one keeps its own motion (ARCSim's obstacles, of infinite mass). Without
+   that, the mass-weighted mean displacement carried hem vertices that lay on a running thigh into it (up to
+   30 mm on the T-shirt in ``run``), and a hem layer over them then kept every later substep from
+   taking them out. Touching vertices are not made kinematic one by one: where cloth is squeezed
+   between two body parts that move differently, they would press two layers of one zone into
+   each other. Moving zones changes the paths, so detection repeats, at most ``rounds`` times.
    The zones of the last round are moved and not checked again: a path that still crosses cloth
    then is rare, and the frame's end untangles it (:mod:`simgen.sim.tangle_repair`). (Moving a
    still-impacting instance as one zone, which cannot cross itself, was the first fallback: on
@@ -216,11 +223,12 @@ def impact_kernels(scalar) -> SimpleNamespace:
 
     @wp.kernel(enable_backward=False, module=mod)
     def zone_sums(x0: wp.array(dtype=vec3), target: wp.array(dtype=vec3), target_v: wp.array(dtype=vec3),
-                  mass: wp.array(dtype=scalar), pinned: wp.array(dtype=wp.int32),
+                  mass: wp.array(dtype=scalar), pinned: wp.array(dtype=wp.int32), touching: wp.array(dtype=wp.int32),
                   parent: wp.array(dtype=wp.int32), zone: wp.array(dtype=wp.int32), size: wp.array(dtype=wp.int32),
                   weight: wp.array(dtype=scalar), motion: wp.array(dtype=vec3), velocity: wp.array(dtype=vec3)):
         # Each vertex's zone and the zone's sums: size, weight and weighted displacement and
-        # velocity. Pinned vertices count alone when the zone has any (a zone follows its kinematic vertices).
+        # velocity. Pinned vertices count alone when the zone has any, else those touching the body
+        # (each tier outweighs the next by 1e6): a zone follows them.
         i = wp.tid()
         r = find(parent, i)
         zone[i] = r
@@ -228,6 +236,8 @@ def impact_kernels(scalar) -> SimpleNamespace:
         w = mass[i]
         if pinned[i] != 0:
             w = w * scalar(1.0e12)
+        elif touching[i] != 0:
+            w = w * scalar(1.0e6)
         wp.atomic_add(weight, r, w)
         wp.atomic_add(motion, r, w * (target[i] - x0[i]))
         wp.atomic_add(velocity, r, w * target_v[i])
@@ -237,7 +247,7 @@ def impact_kernels(scalar) -> SimpleNamespace:
                    pinned: wp.array(dtype=wp.int32), zone: wp.array(dtype=wp.int32), size: wp.array(dtype=wp.int32),
                    weight: wp.array(dtype=scalar), motion: wp.array(dtype=vec3), velocity: wp.array(dtype=vec3),
                    x: wp.array(dtype=vec3), v: wp.array(dtype=vec3)):
-        # A vertex alone keeps the solver's motion; a zone translates as one body (its momentum kept).
+        # A vertex alone, or pinned, keeps its own motion; a zone translates as one body.
         i = wp.tid()
         r = zone[i]
         if size[r] > 1 and pinned[i] == 0:
@@ -286,16 +296,20 @@ class ImpactFilter:
     rounds: detection passes per substep (>= 1; the zones of the last one are moved and not checked
     again). pad [m]: swept boxes are grown by it (float32 broad phase round-off). After
     :meth:`apply`, per instance (I,) int32: ``impacts`` the pairs found impacting in the last round
-    that ran (0: none were left, or none were found).
+    that ran (0: none were left, or none were found). touching: (V,) int32, vertices in contact
+    with the body in this substep (the solver's: :meth:`BodyCollider.project` sets them, the solver
+    zeroes them at each substep's start; None: zeros of its own); a zone without pinned vertices
+    moves by their mean displacement.
     """
 
-    def __init__(self, model, rounds: int = 4, pad: float = 1.0e-4) -> None:
+    def __init__(self, model, rounds: int = 4, pad: float = 1.0e-4, touching=None) -> None:
         self.model, self.rounds, self.pad = model, int(rounds), float(pad)
         dev, n, ni = model.device, model.num_vertices, model.num_instances
         tris = np.asarray(model.host.triangles, dtype=np.int32)
         self.edges = wp.array(unique_edges(tris).astype(np.int32), dtype=wp.int32, device=dev)
         self.offsets = wp.array(instance_offsets(ni), dtype=wp.vec3, device=dev)
         self.impacts = wp.zeros(ni, dtype=wp.int32, device=dev)
+        self.touching = wp.zeros(n, dtype=wp.int32, device=dev) if touching is None else touching
         self._parent = wp.zeros(n, dtype=wp.int32, device=dev)
         self._zone = wp.zeros(n, dtype=wp.int32, device=dev)
         self._size = wp.zeros(n, dtype=wp.int32, device=dev)
@@ -348,7 +362,7 @@ class ImpactFilter:
         wp.launch(k.edge_edge, dim=edges.shape[0], device=m.device, inputs=[x0, x, edges, *common, edge_bvh.id, *tail])
         zone_sums = [self._zone, self._size, self._weight, self._motion, self._velocity]
         wp.launch(k.zone_sums, dim=m.num_vertices, device=m.device, inputs=[
-            x0, self._target, self._target_v, m.vertex_mass, m.vertex_pinned, self._parent, *zone_sums])
+            x0, self._target, self._target_v, m.vertex_mass, m.vertex_pinned, self.touching, self._parent, *zone_sums])
         wp.launch(k.move_zones, dim=m.num_vertices, device=m.device, inputs=[
             x0, self._target, self._target_v, m.vertex_pinned, *zone_sums, x, state.velocities])
         wp.launch(k.next_round, dim=1, device=m.device, inputs=[self._round, self.rounds, self._pending])
