@@ -126,6 +126,21 @@ def test_sheet_thrown_through_a_pinned_sheet(self_contact, tangles):
         assert upper_y.min() > 0.0  # still above the pinned sheet (which stays at y = 0)
 
 
+def test_projection_marks_the_vertices_touching_the_body():
+    # Four cloth vertices over a box's top face (y = 0) at heights -1, +1, +5 and +1.5 mm: the
+    # projection marks those inside or within the touch distance, and only those (before it moves them).
+    _, box_v, box_f = box_body(center=(0.0, -0.125, 0.0))
+    body = BodyCollider.from_static(box_v, box_f, device="cpu")
+    v = np.array([[0.01, -1.0e-3, 0.02], [0.04, 1.0e-3, 0.02], [0.01, 5.0e-3, 0.05], [0.04, 1.5e-3, 0.05]])
+    model = ClothModel.from_mesh(v, [[0, 1, 2], [1, 3, 2]], "cotton", device="cpu")
+    for distance, expected in ((2.0e-3, [1, 1, 0, 1]), (1.2e-3, [1, 1, 0, 0])):
+        state = model.state()
+        touching = wp.zeros(4, dtype=wp.int32, device="cpu")
+        body.project(model, state, touching=touching, touch_distance=distance)
+        assert touching.numpy().tolist() == expected
+        assert state.positions.numpy()[0, 1] == pytest.approx(0.0, abs=1e-6)  # the inside one is on the face
+
+
 def test_sheet_thrown_onto_a_sheet_lying_on_the_body():
     # The lower sheet lies free 1 mm above a box (inside the contact margin); the upper one, 4 mm
     # above it, is thrown down at 20 m/s (6.7 cm per step). Their impacts join them in zones, but
@@ -145,6 +160,29 @@ def test_sheet_thrown_onto_a_sheet_lying_on_the_body():
         depth, _ = body.penetration(model, wp.array(x.astype(np.float32), dtype=wp.vec3, device="cpu"))
         assert depth[0] == 0.0
         assert x[n_low:, 1].min() > x[:n_low, 1].max() + 1.0e-3
+
+
+def test_box_rising_through_two_layers_carries_both_out():
+    # Two free sheets 1 and 4 mm above a box; the box rises 1 cm per step (3 m/s), through both in
+    # each step. The projection puts both on its face and their paths cross: one zone, all its
+    # members touching. Its translation must keep each of them outside (their body half-spaces),
+    # so both leave the box with the 3 mm between them kept, and nothing crosses.
+    v, f, n_low = thrown_sheet(speed=0.0)
+    v[:n_low, 1] = 1.0e-3
+    v[n_low:, 1] = 4.0e-3
+    _, box_v, box_f = box_body(center=(0.06, -0.125, 0.06))
+    body = BodyCollider.from_static(box_v, box_f, device="cpu")
+    model = ClothModel.from_mesh(v, f, "cotton", device="cpu")
+    solver = ImplicitSolver(model, SolverConfig(self_contact=SELF, friction=None, floor=None))
+    state = model.state()
+    for k in range(3):
+        body.update(box_v + [0.0, 0.01 * (k + 1), 0.0], dt=H)
+        solver.step(state, state, body, H)
+        x = state.positions.numpy().astype(np.float64)
+        depth, _ = body.penetration(model, state.positions)
+        assert depth[0] == 0.0
+        assert count_crossing_edges(x, f)[0] == 0
+        assert x[n_low:, 1].min() - x[:n_low, 1].max() > 2.5e-3
 
 
 def tube(n_around=12, n_along=6, radius=0.03, length=0.1):

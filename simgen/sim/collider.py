@@ -69,6 +69,8 @@ def collider_kernels(scalar) -> SimpleNamespace:
         depth_before: wp.array(dtype=scalar),
         count_inside: wp.array(dtype=wp.int32),
         touching: wp.array(dtype=wp.int32),
+        touch_normal: wp.array(dtype=vec3),
+        touch_plane: wp.array(dtype=scalar),
     ):
         i = wp.tid()
         inst = vertex_instance[i]
@@ -80,7 +82,10 @@ def collider_kernels(scalar) -> SimpleNamespace:
             home = vertex_part[i]
         found, d, n, face, bu, bv, own = body_contact(mesh, part_masks, home, x[i], query_distance, pinch_distance)
         if found != 0 and d < scalar(touch_distance) and touching.shape[0] > 0:
+            # The half-space the vertex must stay in: n . x >= n . (closest body point) + offset.
             touching[i] = 1
+            touch_normal[i] = n
+            touch_plane[i] = wp.dot(n, x[i]) - d + offset
         if found == 0 or d >= zero:
             return
         wp.atomic_max(depth_before, inst, -d)
@@ -274,7 +279,8 @@ class BodyCollider:
 
     def project(self, model, state, *, offset: float = 0.0, query_distance: float = 0.05,
                 pinch_distance: float = ContactParams.pinch_distance, depth=None, count=None,
-                touching=None, touch_distance: float = ContactParams.margin) -> None:
+                touching=None, touch_distance: float = ContactParams.margin, touch_normal=None,
+                touch_plane=None) -> None:
         """Push every free cloth vertex inside its body (signed distance < 0) onto the surface.
 
         model: the ClothModel; state: its ClothState, modified in place: the position moves along
@@ -286,19 +292,26 @@ class BodyCollider:
         depth [m] (model scalar) of the deepest vertex before projection, count (int32) of vertices
         found inside (pinned ones included, though they are not moved). touching: optional (V,) int32,
         set to 1 (never reset here) for every vertex within ``touch_distance`` [m] of its body before
-        projection, inside included (the impact filter's kinematic vertices).
+        projection, inside included; for those, touch_normal (V,) vec3 and touch_plane (V,) [m] (model
+        scalar; None: scratch arrays) receive the half-space n . x >= plane that keeps the vertex
+        ``offset`` outside the body (the impact filter's zones respect it).
         """
         self.check_model(model)
         if depth is None:
             depth = wp.zeros(model.num_instances, dtype=model.scalar, device=model.device)
         if count is None:
             count = wp.zeros(model.num_instances, dtype=wp.int32, device=model.device)
+        size = 0 if touching is None else model.num_vertices
         if touching is None:
             touching = wp.empty(0, dtype=wp.int32, device=model.device)
+        if touch_normal is None:
+            touch_normal = wp.zeros(size, dtype=model.vec3, device=model.device)
+        if touch_plane is None:
+            touch_plane = wp.zeros(size, dtype=model.scalar, device=model.device)
         wp.launch(collider_kernels(model.scalar).project, dim=model.num_vertices, device=model.device, inputs=[
             state.positions, state.velocities, model.vertex_instance, model.vertex_pinned, self.mesh_ids,
             offset, query_distance, *part_inputs(model, self.part_masks, pinch_distance), float(touch_distance),
-            depth, count, touching])
+            depth, count, touching, touch_normal, touch_plane])
 
     def penetration(self, model, positions, *, query_distance: float = 0.05,
                     pinch_distance: float = ContactParams.pinch_distance) -> tuple[np.ndarray, np.ndarray]:

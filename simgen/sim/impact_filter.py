@@ -23,13 +23,17 @@ time of impact of Li et al. (2021)'s additive CCD:
    else in it. Zones only grow within a substep; they are translated, not rotated, so spin inside a
    zone is lost (an inelastic impact). Pinned vertices keep their own motion and a zone with any
    follows them. A zone without any follows its vertices that touch the body (found within the
-   contact margin by this substep's body projection): its displacement is their mean, the body's
-   push, and a single one keeps its own motion (ARCSim's obstacles, of infinite mass). Without
-   that, the mass-weighted mean displacement carried hem vertices that lay on a running thigh into it (up to
-   30 mm on the T-shirt in ``run``), and a hem layer over them then kept every later substep from
-   taking them out. Touching vertices are not made kinematic one by one: where cloth is squeezed
-   between two body parts that move differently, they would press two layers of one zone into
-   each other. Moving zones changes the paths, so detection repeats, at most ``rounds`` times.
+   contact margin by this substep's body projection, which also hands over each one's half-space
+   n . x >= plane, ``offset`` outside the body): its translation starts from their mean
+   displacement and is then corrected, by ``BODY_ITERATIONS`` averaged projections, onto the
+   intersection of their half-spaces, so that no member ends inside the body (where the
+   half-spaces of a squeezed zone do not meet, the correction is a compromise). This is ARCSim's
+   body-as-obstacle, for translations. Without it the mass-weighted mean displacement carried hem
+   vertices that lay on a running thigh into it (up to 30 mm on the T-shirt in ``run``; 21 mm
+   with the touching members' mean alone), and a hem layer over them then kept every later
+   substep from taking them out. Touching vertices are not made kinematic one by one: where cloth
+   is squeezed between two body parts that move differently, they would press two layers of one
+   zone into each other. Moving zones changes the paths, so detection repeats, at most ``rounds`` times.
    The zones of the last round are moved and not checked again: a path that still crosses cloth
    then is rare, and the frame's end untangles it (:mod:`simgen.sim.tangle_repair`). (Moving a
    still-impacting instance as one zone, which cannot cross itself, was the first fallback: on
@@ -61,6 +65,7 @@ __all__ = ["ImpactFilter", "impact_kernels"]
 GAP_KEPT = 0.1          # share of a pair's start distance (beyond the separation) that additive CCD never closes
 MIN_SEPARATION = 1.0e-4  # [m] no impact brings two primitives closer (float32 keeps ~1e-6 m at 10 m)
 MAX_CCD_ITERATIONS = 64  # additive CCD stops here and returns its (conservative) time so far
+BODY_ITERATIONS = 4      # averaged projections of a zone's translation onto its touching members' body half-spaces
 
 
 @functools.cache
@@ -245,17 +250,44 @@ def impact_kernels(scalar) -> SimpleNamespace:
     @wp.kernel(enable_backward=False, module=mod)
     def move_zones(x0: wp.array(dtype=vec3), target: wp.array(dtype=vec3), target_v: wp.array(dtype=vec3),
                    pinned: wp.array(dtype=wp.int32), zone: wp.array(dtype=wp.int32), size: wp.array(dtype=wp.int32),
-                   weight: wp.array(dtype=scalar), motion: wp.array(dtype=vec3), velocity: wp.array(dtype=vec3),
-                   x: wp.array(dtype=vec3), v: wp.array(dtype=vec3)):
+                   weight: wp.array(dtype=scalar), motion: wp.array(dtype=vec3), correction: wp.array(dtype=vec3),
+                   velocity: wp.array(dtype=vec3), x: wp.array(dtype=vec3), v: wp.array(dtype=vec3)):
         # A vertex alone, or pinned, keeps its own motion; a zone translates as one body.
         i = wp.tid()
         r = zone[i]
         if size[r] > 1 and pinned[i] == 0:
-            x[i] = x0[i] + motion[r] / weight[r]
+            x[i] = x0[i] + motion[r] / weight[r] + correction[r]
             v[i] = velocity[r] / weight[r]
         else:
             x[i] = target[i]
             v[i] = target_v[i]
+
+    @wp.kernel(enable_backward=False, module=mod)
+    def body_sums(x0: wp.array(dtype=vec3), touching: wp.array(dtype=wp.int32), normal: wp.array(dtype=vec3),
+                  plane: wp.array(dtype=scalar), zone: wp.array(dtype=wp.int32), size: wp.array(dtype=wp.int32),
+                  weight: wp.array(dtype=scalar), motion: wp.array(dtype=vec3), correction: wp.array(dtype=vec3),
+                  push: wp.array(dtype=vec3), pushes: wp.array(dtype=wp.int32)):
+        # Each touching member of a zone whose translation would leave it inside its body half-space
+        # adds its projection onto that half-space (averaged per zone by body_step).
+        i = wp.tid()
+        if touching[i] == 0:
+            return
+        r = zone[i]
+        if size[r] <= 1:
+            return
+        n = normal[i]
+        short = plane[i] - wp.dot(n, x0[i] + motion[r] / weight[r] + correction[r])
+        if short > zero:
+            wp.atomic_add(push, r, short * n)
+            wp.atomic_add(pushes, r, 1)
+
+    @wp.kernel(enable_backward=False, module=mod)
+    def body_step(push: wp.array(dtype=vec3), pushes: wp.array(dtype=wp.int32), correction: wp.array(dtype=vec3)):
+        r = wp.tid()
+        if pushes[r] > 0:
+            correction[r] = correction[r] + push[r] / scalar(pushes[r])
+            push[r] = vec3()
+            pushes[r] = 0
 
     @wp.kernel(enable_backward=False, module=mod)
     def start(parent: wp.array(dtype=wp.int32), round_index: wp.array(dtype=wp.int32),
@@ -268,12 +300,13 @@ def impact_kernels(scalar) -> SimpleNamespace:
 
     @wp.kernel(enable_backward=False, module=mod)
     def clear(size: wp.array(dtype=wp.int32), weight: wp.array(dtype=scalar), motion: wp.array(dtype=vec3),
-              velocity: wp.array(dtype=vec3), pending: wp.array(dtype=wp.int32)):
+              velocity: wp.array(dtype=vec3), correction: wp.array(dtype=vec3), pending: wp.array(dtype=wp.int32)):
         i = wp.tid()
         size[i] = 0
         weight[i] = zero
         motion[i] = vec3()
         velocity[i] = vec3()
+        correction[i] = vec3()
         if i == 0:
             pending[0] = 0
 
@@ -286,7 +319,7 @@ def impact_kernels(scalar) -> SimpleNamespace:
             pending[0] = 0
 
     return SimpleNamespace(boxes=boxes, vertex_triangle=vertex_triangle, edge_edge=edge_edge, zone_sums=zone_sums,
-                           move_zones=move_zones, start=start, clear=clear, next_round=next_round,
+                           body_sums=body_sums, body_step=body_step, move_zones=move_zones, start=start, clear=clear, next_round=next_round,
                            time_of_impact=time_of_impact, pair_distance=pair_distance)
 
 
@@ -302,7 +335,8 @@ class ImpactFilter:
     moves by their mean displacement.
     """
 
-    def __init__(self, model, rounds: int = 4, pad: float = 1.0e-4, touching=None) -> None:
+    def __init__(self, model, rounds: int = 4, pad: float = 1.0e-4, touching=None, touch_normal=None,
+                 touch_plane=None) -> None:
         self.model, self.rounds, self.pad = model, int(rounds), float(pad)
         dev, n, ni = model.device, model.num_vertices, model.num_instances
         tris = np.asarray(model.host.triangles, dtype=np.int32)
@@ -310,6 +344,11 @@ class ImpactFilter:
         self.offsets = wp.array(instance_offsets(ni), dtype=wp.vec3, device=dev)
         self.impacts = wp.zeros(ni, dtype=wp.int32, device=dev)
         self.touching = wp.zeros(n, dtype=wp.int32, device=dev) if touching is None else touching
+        self.touch_normal = wp.zeros(n, dtype=model.vec3, device=dev) if touch_normal is None else touch_normal
+        self.touch_plane = wp.zeros(n, dtype=model.scalar, device=dev) if touch_plane is None else touch_plane
+        self._correction = wp.zeros(n, dtype=model.vec3, device=dev)
+        self._push = wp.zeros(n, dtype=model.vec3, device=dev)
+        self._pushes = wp.zeros(n, dtype=wp.int32, device=dev)
         self._parent = wp.zeros(n, dtype=wp.int32, device=dev)
         self._zone = wp.zeros(n, dtype=wp.int32, device=dev)
         self._size = wp.zeros(n, dtype=wp.int32, device=dev)
@@ -352,7 +391,7 @@ class ImpactFilter:
             self._boxes(x0, x, elements, lo, hi)
             bvh.refit()
         wp.launch(k.clear, dim=m.num_vertices, device=m.device,
-                  inputs=[self._size, self._weight, self._motion, self._velocity, self._pending])
+                  inputs=[self._size, self._weight, self._motion, self._velocity, self._correction, self._pending])
         self.impacts.zero_()
         (tris, *_, tri_bvh), (edges, *_, edge_bvh) = self._bvhs
         common = [m.vertex_instance, self.offsets]
@@ -363,6 +402,13 @@ class ImpactFilter:
         zone_sums = [self._zone, self._size, self._weight, self._motion, self._velocity]
         wp.launch(k.zone_sums, dim=m.num_vertices, device=m.device, inputs=[
             x0, self._target, self._target_v, m.vertex_mass, m.vertex_pinned, self.touching, self._parent, *zone_sums])
+        for _ in range(BODY_ITERATIONS):
+            wp.launch(k.body_sums, dim=m.num_vertices, device=m.device, inputs=[
+                x0, self.touching, self.touch_normal, self.touch_plane, self._zone, self._size, self._weight,
+                self._motion, self._correction, self._push, self._pushes])
+            wp.launch(k.body_step, dim=m.num_vertices, device=m.device,
+                      inputs=[self._push, self._pushes, self._correction])
         wp.launch(k.move_zones, dim=m.num_vertices, device=m.device, inputs=[
-            x0, self._target, self._target_v, m.vertex_pinned, *zone_sums, x, state.velocities])
+            x0, self._target, self._target_v, m.vertex_pinned, self._zone, self._size, self._weight, self._motion,
+            self._correction, self._velocity, x, state.velocities])
         wp.launch(k.next_round, dim=1, device=m.device, inputs=[self._round, self.rounds, self._pending])

@@ -238,7 +238,8 @@ class ImplicitSolver:
         # Vertices the body projection found within the contact margin in the current substep: the
         # impact filter's zones follow them.
         self.touching = wp.zeros(m.num_vertices, dtype=wp.int32, device=dev) if filtering else None
-        self.impact_filter = ImpactFilter(m, cfg.self_contact.impact_rounds, touching=self.touching) if filtering else None
+        self.impact_filter = (ImpactFilter(m, cfg.self_contact.impact_rounds, touching=self.touching)
+                              if filtering else None)
         self._substep_start = m.new_gradient() if self.impact_filter is not None else None
         self.strain_limiter = (StrainLimiter(m, cfg.strain_limit, cfg.strain_limit_iterations)
                                if cfg.strain_limit is not None else None)
@@ -388,7 +389,9 @@ class ImplicitSolver:
                     body.project(self.model, work, offset=cfg.projection_offset,
                                  query_distance=cfg.contact.query_distance,
                                  pinch_distance=cfg.contact.pinch_distance, depth=self._depth, count=self._inside,
-                                 touching=self.touching, touch_distance=cfg.contact.margin)
+                                 touching=self.touching, touch_distance=cfg.contact.margin,
+                                 touch_normal=None if self.touching is None else self.impact_filter.touch_normal,
+                                 touch_plane=None if self.touching is None else self.impact_filter.touch_plane)
                     wp.launch(self.kernels.keep_max, dim=self.model.num_instances, device=self.model.device,
                               inputs=[self._depth, self._depth_max])
             if cfg.floor is not None and cfg.project:
