@@ -329,23 +329,22 @@ class ImpactFilter:
     rounds: detection passes per substep (>= 1; the zones of the last one are moved and not checked
     again). pad [m]: swept boxes are grown by it (float32 broad phase round-off). After
     :meth:`apply`, per instance (I,) int32: ``impacts`` the pairs found impacting in the last round
-    that ran (0: none were left, or none were found). touching: (V,) int32, vertices in contact
-    with the body in this substep (the solver's: :meth:`BodyCollider.project` sets them, the solver
-    zeroes them at each substep's start; None: zeros of its own); a zone without pinned vertices
-    moves by their mean displacement.
+    that ran (0: none were left, or none were found). touching (V,) int32, touch_normal (V,) vec3 and
+    touch_plane (V,) [m]: the vertices in contact with the body in this substep and their
+    half-spaces n . x >= plane (:meth:`BodyCollider.project` writes them, see :meth:`touch_outputs`;
+    the solver zeroes ``touching`` at each substep's start).
     """
 
-    def __init__(self, model, rounds: int = 4, pad: float = 1.0e-4, touching=None, touch_normal=None,
-                 touch_plane=None) -> None:
+    def __init__(self, model, rounds: int = 4, pad: float = 1.0e-4) -> None:
         self.model, self.rounds, self.pad = model, int(rounds), float(pad)
         dev, n, ni = model.device, model.num_vertices, model.num_instances
         tris = np.asarray(model.host.triangles, dtype=np.int32)
         self.edges = wp.array(unique_edges(tris).astype(np.int32), dtype=wp.int32, device=dev)
         self.offsets = wp.array(instance_offsets(ni), dtype=wp.vec3, device=dev)
         self.impacts = wp.zeros(ni, dtype=wp.int32, device=dev)
-        self.touching = wp.zeros(n, dtype=wp.int32, device=dev) if touching is None else touching
-        self.touch_normal = wp.zeros(n, dtype=model.vec3, device=dev) if touch_normal is None else touch_normal
-        self.touch_plane = wp.zeros(n, dtype=model.scalar, device=dev) if touch_plane is None else touch_plane
+        self.touching = wp.zeros(n, dtype=wp.int32, device=dev)
+        self.touch_normal = wp.zeros(n, dtype=model.vec3, device=dev)
+        self.touch_plane = wp.zeros(n, dtype=model.scalar, device=dev)
         self._correction = wp.zeros(n, dtype=model.vec3, device=dev)
         self._push = wp.zeros(n, dtype=model.vec3, device=dev)
         self._pushes = wp.zeros(n, dtype=wp.int32, device=dev)
@@ -367,6 +366,11 @@ class ImpactFilter:
             self._boxes(rest, rest, elements, lo, hi)
             # Built once on the rest shape (its topology follows the garment), refit afterwards.
             self._bvhs.append((elements, lo, hi, wp.Bvh(lo, hi)))
+
+    def touch_outputs(self) -> dict:
+        """The keyword arguments of :meth:`BodyCollider.project` that fill this filter's touching
+        vertices and their half-spaces."""
+        return {"touching": self.touching, "touch_normal": self.touch_normal, "touch_plane": self.touch_plane}
 
     def _boxes(self, x0, x1, elements, lo, hi) -> None:
         m = self.model

@@ -234,12 +234,8 @@ class ImplicitSolver:
         # The contact's body part rule, decided per vertex at each step's start and held through it.
         self.part_choice = wp.zeros(m.num_vertices, dtype=wp.int32, device=dev)
         self.self_contact = SelfContactSet(m, cfg.self_contact) if cfg.self_contact is not None else None
-        filtering = cfg.self_contact is not None and cfg.self_contact.impact_rounds > 0
-        # Vertices the body projection found within the contact margin in the current substep: the
-        # impact filter's zones follow them.
-        self.touching = wp.zeros(m.num_vertices, dtype=wp.int32, device=dev) if filtering else None
-        self.impact_filter = (ImpactFilter(m, cfg.self_contact.impact_rounds, touching=self.touching)
-                              if filtering else None)
+        self.impact_filter = (ImpactFilter(m, cfg.self_contact.impact_rounds)
+                              if cfg.self_contact is not None and cfg.self_contact.impact_rounds > 0 else None)
         self._substep_start = m.new_gradient() if self.impact_filter is not None else None
         self.strain_limiter = (StrainLimiter(m, cfg.strain_limit, cfg.strain_limit_iterations)
                                if cfg.strain_limit is not None else None)
@@ -372,7 +368,7 @@ class ImplicitSolver:
         for s in range(n):
             if self.impact_filter is not None:
                 wp.copy(self._substep_start, work.positions)
-                self.touching.zero_()
+                self.impact_filter.touching.zero_()  # marked afresh by this substep's projection
             if deferred_guard:
                 self._deferred_step(work, body, dt / n, s / n, (s + 1) / n)
             else:
@@ -386,12 +382,11 @@ class ImplicitSolver:
                 if projecting:
                     self._inside.zero_()
                     self._depth.zero_()
+                    f = self.impact_filter
                     body.project(self.model, work, offset=cfg.projection_offset,
                                  query_distance=cfg.contact.query_distance,
                                  pinch_distance=cfg.contact.pinch_distance, depth=self._depth, count=self._inside,
-                                 touching=self.touching, touch_distance=cfg.contact.margin,
-                                 touch_normal=None if self.touching is None else self.impact_filter.touch_normal,
-                                 touch_plane=None if self.touching is None else self.impact_filter.touch_plane)
+                                 touch_distance=cfg.contact.margin, **({} if f is None else f.touch_outputs()))
                     wp.launch(self.kernels.keep_max, dim=self.model.num_instances, device=self.model.device,
                               inputs=[self._depth, self._depth_max])
             if cfg.floor is not None and cfg.project:
