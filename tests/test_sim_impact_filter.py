@@ -136,16 +136,23 @@ def test_projection_marks_the_vertices_touching_the_body():
     for distance, expected in ((2.0e-3, [1, 1, 0, 1]), (1.2e-3, [1, 1, 0, 0])):
         state = model.state()
         touching = wp.zeros(4, dtype=wp.int32, device="cpu")
-        body.project(model, state, touching=touching, touch_distance=distance)
+        normal = wp.zeros(4, dtype=wp.vec3, device="cpu")
+        plane = wp.zeros(4, dtype=wp.float32, device="cpu")
+        body.project(model, state, offset=2.0e-4, touching=touching, touch_distance=distance, touch_normal=normal,
+                     touch_plane=plane)
         assert touching.numpy().tolist() == expected
-        assert state.positions.numpy()[0, 1] == pytest.approx(0.0, abs=1e-6)  # the inside one is on the face
+        marked = np.flatnonzero(expected)
+        # Their half-spaces: the face's outward normal, and y >= the face plus the offset.
+        assert np.allclose(normal.numpy()[marked], [0.0, 1.0, 0.0], atol=1e-6)
+        assert np.allclose(plane.numpy()[marked], 2.0e-4, atol=1e-6)
+        assert state.positions.numpy()[0, 1] == pytest.approx(2.0e-4, abs=1e-6)  # the inside one: on the face + offset
 
 
 def test_sheet_thrown_onto_a_sheet_lying_on_the_body():
     # The lower sheet lies free 1 mm above a box (inside the contact margin); the upper one, 4 mm
     # above it, is thrown down at 20 m/s (6.7 cm per step). Their impacts join them in zones, but
-    # the lower sheet touches the body and is kinematic there (an obstacle): a zone's mean motion
-    # must not carry it into the box (it did, 17 mm, before), and the upper sheet stops on it.
+    # the lower sheet touches the body, so the zones follow it and keep it out of the box (the
+    # zones' mass-weighted mean carried it 17 mm into the box before), and the upper sheet stops on it.
     v, f, n_low = thrown_sheet(speed=0.0)
     v[:n_low, 1] = 1.0e-3
     v[n_low:, 1] = 5.0e-3

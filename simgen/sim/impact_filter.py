@@ -33,7 +33,8 @@ time of impact of Li et al. (2021)'s additive CCD:
    with the touching members' mean alone), and a hem layer over them then kept every later
    substep from taking them out. Touching vertices are not made kinematic one by one: where cloth
    is squeezed between two body parts that move differently, they would press two layers of one
-   zone into each other. Moving zones changes the paths, so detection repeats, at most ``rounds`` times.
+   zone into each other. Moving zones changes the paths, so detection repeats, at most ``rounds``
+   times.
    The zones of the last round are moved and not checked again: a path that still crosses cloth
    then is rare, and the frame's end untangles it (:mod:`simgen.sim.tangle_repair`). (Moving a
    still-impacting instance as one zone, which cannot cross itself, was the first fallback: on
@@ -71,8 +72,9 @@ BODY_ITERATIONS = 4      # averaged projections of a zone's translation onto its
 @functools.cache
 def impact_kernels(scalar) -> SimpleNamespace:
     """Kernels for one scalar type: ``.boxes`` (swept boxes of triangles or edges), ``.vertex_triangle``
-    and ``.edge_edge`` (impacting pairs into zones), ``.zone_sums`` and ``.move_zones`` (the
-    zones' rigid translation), ``.start``, ``.clear``, ``.next_round`` and ``.time_of_impact``."""
+    and ``.edge_edge`` (impacting pairs into zones), ``.zone_sums``, ``.body_sums``, ``.body_step``
+    and ``.move_zones`` (the zones' rigid translation, kept out of the body), ``.start``, ``.clear``,
+    ``.next_round`` and ``.time_of_impact``."""
     T = scalar_types(scalar)
     vec3 = T.vec3
     zero, one = scalar(0.0), scalar(1.0)
@@ -319,7 +321,8 @@ def impact_kernels(scalar) -> SimpleNamespace:
             pending[0] = 0
 
     return SimpleNamespace(boxes=boxes, vertex_triangle=vertex_triangle, edge_edge=edge_edge, zone_sums=zone_sums,
-                           body_sums=body_sums, body_step=body_step, move_zones=move_zones, start=start, clear=clear, next_round=next_round,
+                           body_sums=body_sums, body_step=body_step, move_zones=move_zones, start=start,
+                           clear=clear, next_round=next_round,
                            time_of_impact=time_of_impact, pair_distance=pair_distance)
 
 
