@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import warp as wp
 
+from simgen.errors import InputError
 from simgen.garment.crossings import count_crossing_edges
 from simgen.params import SelfContactParams
 from simgen.sim import BodyCollider, ClothModel, ClothModelBuilder, ImplicitSolver, SolverConfig
@@ -146,6 +147,19 @@ def test_projection_marks_the_vertices_touching_the_body():
         assert np.allclose(normal.numpy()[marked], [0.0, 1.0, 0.0], atol=1e-6)
         assert np.allclose(plane.numpy()[marked], 2.0e-4, atol=1e-6)
         assert state.positions.numpy()[0, 1] == pytest.approx(2.0e-4, abs=1e-6)  # the inside one: on the face + offset
+    with pytest.raises(InputError, match="touching, touch_normal and touch_plane together"):
+        body.project(model, model.state(), touching=touching)
+
+
+def sheets_on_box(lower, upper):
+    """thrown_sheet's two sheets, free, at heights lower and upper [m] over a box whose top face is
+    y = 0: vertices, faces, the lower sheet's vertex count, the cloth model and the box's collider."""
+    v, f, n_low = thrown_sheet(speed=0.0)
+    v[:n_low, 1] = lower
+    v[n_low:, 1] = upper
+    _, box_v, box_f = box_body(center=(0.06, -0.125, 0.06))
+    body = BodyCollider.from_static(box_v, box_f, device="cpu")
+    return v, f, n_low, ClothModel.from_mesh(v, f, "cotton", device="cpu"), body
 
 
 def test_sheet_thrown_onto_a_sheet_lying_on_the_body():
@@ -153,15 +167,10 @@ def test_sheet_thrown_onto_a_sheet_lying_on_the_body():
     # above it, is thrown down at 20 m/s (6.7 cm per step). Their impacts join them in zones, but
     # the lower sheet touches the body, so the zones follow it and keep it out of the box (the
     # zones' mass-weighted mean carried it 17 mm into the box before), and the upper sheet stops on it.
-    v, f, n_low = thrown_sheet(speed=0.0)
-    v[:n_low, 1] = 1.0e-3
-    v[n_low:, 1] = 5.0e-3
-    _, box_v, box_f = box_body(center=(0.06, -0.125, 0.06))
-    body = BodyCollider.from_static(box_v, box_f, device="cpu")
-    model = ClothModel.from_mesh(v, f, "cotton", device="cpu")
+    v, f, n_low, model, body = sheets_on_box(1.0e-3, 5.0e-3)
     vel = np.zeros_like(v)
     vel[n_low:, 1] = -20.0
-    frames, solver = run(model, SolverConfig(self_contact=SELF, friction=None, floor=None), vel, steps=3, body=body)
+    frames, _ = run(model, SolverConfig(self_contact=SELF, friction=None, floor=None), vel, steps=3, body=body)
     assert count_crossing_edges(frames, f).max() == 0
     for x in frames:
         depth, _ = body.penetration(model, wp.array(x.astype(np.float32), dtype=wp.vec3, device="cpu"))
@@ -174,12 +183,8 @@ def test_box_rising_through_two_layers_carries_both_out():
     # each step. The projection puts both on its face and their paths cross: one zone, all its
     # members touching. Its translation must keep each of them outside (their body half-spaces),
     # so both leave the box with the 3 mm between them kept, and nothing crosses.
-    v, f, n_low = thrown_sheet(speed=0.0)
-    v[:n_low, 1] = 1.0e-3
-    v[n_low:, 1] = 4.0e-3
-    _, box_v, box_f = box_body(center=(0.06, -0.125, 0.06))
-    body = BodyCollider.from_static(box_v, box_f, device="cpu")
-    model = ClothModel.from_mesh(v, f, "cotton", device="cpu")
+    v, f, n_low, model, body = sheets_on_box(1.0e-3, 4.0e-3)
+    box_v = body.points.numpy().astype(np.float64)
     solver = ImplicitSolver(model, SolverConfig(self_contact=SELF, friction=None, floor=None))
     state = model.state()
     for k in range(3):

@@ -183,6 +183,7 @@ class BodyCollider:
                 raise InputError(f"body part_masks must be {len(faces)} integers (one per face), got {part_masks.shape}")
             self.part_masks = wp.array(part_masks.astype(np.int32), dtype=wp.int32, device=dev)
         self._warp_body = None
+        self._no_touch: dict = {}
 
     @classmethod
     def from_static(cls, vertices, faces, *, num_instances: int = 1, part_masks=None, device=None) -> "BodyCollider":
@@ -293,7 +294,7 @@ class BodyCollider:
         found inside (pinned ones included, though they are not moved). touching: optional (V,) int32,
         set to 1 (never reset here) for every vertex within ``touch_distance`` [m] of its body before
         projection, inside included; for those, touch_normal (V,) vec3 and touch_plane (V,) [m] (model
-        scalar; None: scratch arrays) receive the half-space n . x >= plane that keeps the vertex
+        scalar; given with touching) receive the half-space n . x >= plane that keeps the vertex
         ``offset`` outside the body (the impact filter's zones respect it).
         """
         self.check_model(model)
@@ -301,17 +302,28 @@ class BodyCollider:
             depth = wp.zeros(model.num_instances, dtype=model.scalar, device=model.device)
         if count is None:
             count = wp.zeros(model.num_instances, dtype=wp.int32, device=model.device)
-        size = 0 if touching is None else model.num_vertices
-        if touching is None:
-            touching = wp.empty(0, dtype=wp.int32, device=model.device)
-        if touch_normal is None:
-            touch_normal = wp.zeros(size, dtype=model.vec3, device=model.device)
-        if touch_plane is None:
-            touch_plane = wp.zeros(size, dtype=model.scalar, device=model.device)
+        touching, touch_normal, touch_plane = self._touch_outputs(model, touching, touch_normal, touch_plane)
         wp.launch(collider_kernels(model.scalar).project, dim=model.num_vertices, device=model.device, inputs=[
             state.positions, state.velocities, model.vertex_instance, model.vertex_pinned, self.mesh_ids,
             offset, query_distance, *part_inputs(model, self.part_masks, pinch_distance), float(touch_distance),
             depth, count, touching, touch_normal, touch_plane])
+
+    def _touch_outputs(self, model, touching, normal, plane) -> tuple:
+        """project()'s touching outputs, checked: all three (V,) arrays, or none (empty arrays of the
+        model's types, made once per scalar type)."""
+        given = [a is not None for a in (touching, normal, plane)]
+        if not any(given):
+            key = model.scalar
+            if key not in self._no_touch:
+                self._no_touch[key] = (wp.empty(0, dtype=wp.int32, device=model.device),
+                                       wp.empty(0, dtype=model.vec3, device=model.device),
+                                       wp.empty(0, dtype=model.scalar, device=model.device))
+            return self._no_touch[key]
+        n = model.num_vertices
+        if not all(given) or any(a.shape != (n,) for a in (touching, normal, plane)):
+            raise InputError(f"BodyCollider.project needs touching, touch_normal and touch_plane together, each of "
+                             f"shape ({n},) (one per cloth vertex), or none of them")
+        return touching, normal, plane
 
     def penetration(self, model, positions, *, query_distance: float = 0.05,
                     pinch_distance: float = ContactParams.pinch_distance) -> tuple[np.ndarray, np.ndarray]:
