@@ -55,6 +55,39 @@ def test_a_freed_slot_takes_the_next_job(inputs, alone):
         assert res.metadata["betas"] == ref.metadata["betas"] and res.metadata["batch_size"] == 2
 
 
+def test_a_job_at_twice_the_substeps_shares_the_pool(inputs, alone):
+    """A job with substeps_factor 2 (a dataset retry) beside a job at the pool's substeps: each
+    gives what it gives alone at its own substeps (the retry's solver steps are half as long, its
+    body targets at its own substeps' ends, one frame recorded every two pool frames)."""
+    import dataclasses
+
+    body, garment, walk, squat = inputs
+    ref = simulate(garment, body, squat, [0.5, 1.0], dataclasses.replace(CFG, substeps=2 * CFG.substeps), frames=3)
+    pool = SimulationPool(garment, body, 2, CFG, fps=30.0)
+    pool.submit(SimulationJob(walk, betas=[1.0, -0.5], frames=6), tag="long")
+    pool.submit(SimulationJob(squat, betas=[0.5, 1.0], frames=3, substeps_factor=2), tag="retry")
+    protocol = CFG.relax_frames + CFG.ramp_frames + CFG.rest_frames
+    pool.fill()
+    assert pool.next_frames() == 2 * (protocol + 2)
+    ended = {}
+    while pool.busy or pool.queued:
+        ended.update({tag: (res, pool.frames_run) for tag, res in pool.step()})
+    assert ended["long"][1] == protocol + 5 and ended["retry"][1] == 2 * (protocol + 2)
+    assert pool.cloth_frames == (protocol + 5) + (protocol + 2)       # frames of the jobs, not pool frames
+    for res, want in ((ended["long"][0], alone["long"]), (ended["retry"][0], ref)):
+        assert isinstance(res, SimulationResult) and res.positions.shape == want.positions.shape
+        assert np.abs(res.positions - want.positions).max() < 1e-4
+        assert np.abs(res.protocol_positions - want.protocol_positions).max() < 1e-4
+        for k in ("inside_count", "crossing_edges", "retries"):
+            assert np.array_equal(res.stats[k], want.stats[k]), k
+        assert res.metadata["substeps"] == want.metadata["substeps"] and res.dt == pytest.approx(want.dt, rel=1e-15)
+    # The retry's newton iterations add up over its two pool frames per frame.
+    retry = ended["retry"][0]
+    assert retry.stats["newton_iterations"][1] == 2 * CFG.substeps * CFG.solver.newton_iterations
+    # The slot is back at full steps for the next job.
+    assert pool.setup.model.instance_step_divisor.numpy().tolist() == [1, 1]
+
+
 def test_accept_refuses_jobs_and_abandon_stops_them(inputs):
     body, garment, walk, squat = inputs
     pool = SimulationPool(garment, body, 1, CFG, fps=30.0)
@@ -104,4 +137,6 @@ def test_pool_input_errors(inputs):
         pool.submit(SimulationJob(squat, material="denim"))
     with pytest.raises(InputError, match="frames must be"):
         pool.submit(SimulationJob(squat, frames=0))
+    with pytest.raises(InputError, match="power of two"):
+        pool.submit(SimulationJob(squat, substeps_factor=3))
     assert pool.queued == 0 and pool.step() == []

@@ -32,7 +32,10 @@ class SimulationJob:
     clip: :class:`MotionClip` or a library motion name; betas: (B',) shape coefficients (None:
     zeros); frames: output frames (None: the whole clip; more than it holds repeat its last pose);
     key: a label carried into the result's metadata and into failures (default: the job's index);
-    material: preset name or :class:`Material` (None: the config's, with its overrides).
+    material: preset name or :class:`Material` (None: the config's, with its overrides);
+    substeps_factor: 1, 2, 4, ...: the job runs at that many times the config's substeps (its solver
+    steps that much shorter; in a :class:`simgen.sim.SimulationPool` it takes that many pool frames
+    per frame of its own), e.g. a retry of a job that failed at the config's.
     """
 
     clip: object
@@ -40,6 +43,7 @@ class SimulationJob:
     frames: int | None = None
     key: str | None = None
     material: str | Material | None = None
+    substeps_factor: int = 1
 
 
 @dataclass
@@ -105,6 +109,9 @@ def check_job(job, i=0) -> None:
     f = job.frames
     if f is not None and (isinstance(f, bool) or not isinstance(f, (int, np.integer)) or f < 1):
         raise InputError(f"frames must be an integer >= 1, got {f!r}")
+    k = job.substeps_factor
+    if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or k < 1 or k & (k - 1):
+        raise InputError(f"substeps_factor must be a power of two >= 1 (1, 2, 4, ...), got {k!r}")
 
 
 def resolve_clip(clip, cache: dict | None = None):

@@ -38,9 +38,10 @@ def _lerp_points(start: wp.array(dtype=wp.vec3), end: wp.array(dtype=wp.vec3), t
 
 @wp.kernel(enable_backward=False)
 def _finite_difference(start: wp.array(dtype=wp.vec3), end: wp.array(dtype=wp.vec3), inv_dt: float,
-                       out: wp.array(dtype=wp.vec3)):
+                       step_divisor: wp.array(dtype=wp.int32), vertices_per_body: int, out: wp.array(dtype=wp.vec3)):
+    # The bodies are stacked instance-major: body vertex i belongs to instance i // Vb.
     i = wp.tid()
-    out[i] = (end[i] - start[i]) * inv_dt
+    out[i] = (end[i] - start[i]) * (inv_dt * float(step_divisor[i // vertices_per_body]))
 
 
 @functools.cache
@@ -184,6 +185,7 @@ class BodyCollider:
             self.part_masks = wp.array(part_masks.astype(np.int32), dtype=wp.int32, device=dev)
         self._warp_body = None
         self._no_touch: dict = {}
+        self._one_step = wp.array(np.ones(self.num_instances, dtype=np.int32), dtype=wp.int32, device=dev)
 
     @classmethod
     def from_static(cls, vertices, faces, *, num_instances: int = 1, part_masks=None, device=None) -> "BodyCollider":
@@ -212,13 +214,15 @@ class BodyCollider:
         self._warp_body = body
         return self
 
-    def update(self, positions=None, velocities=None, *, dt: float | None = None) -> None:
+    def update(self, positions=None, velocities=None, *, dt: float | None = None, step_divisor=None) -> None:
         """Move the body to new vertex positions for the coming step and refit.
 
         positions [m]: (I, Vb, 3) or (I*Vb, 3) numpy, or an (I*Vb,) wp.vec3 array on the device;
           None with a WarpBody-built collider copies the WarpBody's current vertices on the device.
         velocities [m/s]: the body's vertex velocities over the step, same shapes; if None, they are
           (positions - previous positions) / dt when dt [s] is given, else zero (a teleport).
+        step_divisor: int32 (I,) warp array (a cloth model's ``instance_step_divisor``): instance k's
+          bodies moved in dt / step_divisor[k] (None: all in dt).
         The previous positions become the start of the step (see :meth:`set_time`); the meshes are
         left at the new positions.
         """
@@ -238,8 +242,14 @@ class BodyCollider:
         elif dt is not None:
             if not dt > 0:
                 raise InputError(f"time step must be > 0, got {dt!r}")
+            if step_divisor is None:
+                step_divisor = self._one_step
+            elif step_divisor.shape != (self.num_instances,):
+                raise InputError(f"step_divisor must hold one int32 per body ({self.num_instances}), got shape "
+                                 f"{step_divisor.shape}")
             wp.launch(_finite_difference, dim=len(self.points), device=self.device,
-                      inputs=[self._start, self._end, 1.0 / dt, self.velocities])
+                      inputs=[self._start, self._end, 1.0 / dt, step_divisor, self.num_body_vertices,
+                              self.velocities])
         else:
             self.velocities.zero_()
         wp.copy(self.points, self._end)

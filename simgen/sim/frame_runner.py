@@ -113,13 +113,16 @@ class FrameRunner:
         targets of an idle slot, which keep its body where it is."""
         return self._q_now, self._tr_now
 
-    def place(self, slot: int, quats: np.ndarray, trans: np.ndarray, positions: np.ndarray) -> None:
+    def place(self, slot: int, quats: np.ndarray, trans: np.ndarray, positions: np.ndarray,
+              step_divisor: int = 1) -> None:
         """Start a job in idle ``slot`` at the next :meth:`run`: its body at rest shape in pose
         quats xyzw (24, 4) at root translation trans [m] (3,), its garment at positions [m] (V, 3)
-        at rest, its pins and body back on."""
+        at rest, its pins and body back on; step_divisor: its solver steps take the batch's substep
+        divided by this (1, 2, 4, ...: the job runs at that many times the substeps, each
+        :meth:`run` then advancing it by that fraction of a frame)."""
         if self.active[slot]:
             raise ValueError(f"slot {slot} is busy")
-        self._placed[slot] = (quats, trans, positions)
+        self._placed[slot] = (quats, trans, positions, int(step_divisor))
         self.active[slot] = True
 
     def release(self, slots) -> None:
@@ -166,11 +169,14 @@ class FrameRunner:
         model, state, collider = s.model, s.state, s.collider
         starts = np.asarray(model.vertex_start)
         pinned, ids, vel = model.vertex_pinned.numpy(), collider.mesh_ids.numpy(), state.velocities.numpy()
+        divisor = model.instance_step_divisor.numpy()
         for i in slots:
             pinned[starts[i]:starts[i + 1]] = 1
             vel[starts[i]:starts[i + 1]] = 0.0
             ids[i] = 0
+            divisor[i] = 1
         model.vertex_pinned.assign(pinned)
+        model.instance_step_divisor.assign(divisor)
         collider.mesh_ids.assign(ids)
         state.velocities.assign(vel)
 
@@ -185,7 +191,9 @@ class FrameRunner:
         starts = np.asarray(model.vertex_start)
         x, v = state.positions.numpy(), state.velocities.numpy()
         pinned, ids = model.vertex_pinned.numpy(), collider.mesh_ids.numpy()
-        for i, (q, tr, pos) in self._placed.items():
+        divisor = model.instance_step_divisor.numpy()
+        for i, (q, tr, pos, d) in self._placed.items():
+            divisor[i] = d
             a, b = starts[i], starts[i + 1]
             x[a:b] = pos
             v[a:b] = 0.0
@@ -193,7 +201,7 @@ class FrameRunner:
             ids[i] = self._mesh_ids[i]
             self._q_now[i], self._tr_now[i], self._betas_now[i] = q, tr, 0.0
         for arr, host in ((state.positions, x), (state.velocities, v), (model.vertex_pinned, pinned),
-                          (collider.mesh_ids, ids)):
+                          (collider.mesh_ids, ids), (model.instance_step_divisor, divisor)):
             arr.assign(host)
         if s.body.num_betas > 0:
             s.wbody.set_shape(self._betas_now)
@@ -244,7 +252,7 @@ class FrameRunner:
             if reshape:
                 s.wbody.set_shape(betas)
             s.wbody.pose_from_quats(quats, trans)
-            s.collider.update(dt=s.dt)
+            s.collider.update(dt=s.dt, step_divisor=s.model.instance_step_divisor)
             s.solver.step(s.state, s.state, s.collider, s.dt, deferred_guard=True,
                           substeps=2 ** level)
 

@@ -9,6 +9,12 @@ batch stays full until the queue runs out; a slot with nothing to do is idle (pi
 :mod:`simgen.sim.frame_runner`). Instances never interact, so a job's result does not depend on
 what its batch mates are doing (up to float summation order), only on its own inputs.
 
+A job with ``substeps_factor`` k (a dataset's retry of a job that failed at the pool's substeps)
+runs in a slot like any other, with its solver steps k times shorter
+(:attr:`ClothModel.instance_step_divisor`): each pool frame advances it by 1/k of a frame, with
+body targets at its own substeps' times, and it records a frame every k pool frames, so it never
+needs a pool of its own.
+
 A clip's output frame 0 is the rest phase's end state and takes no step: it is recorded with the
 job's last protocol frame. The frames a pool steps therefore number, per job, the protocol frames
 plus the output frames minus one (the cloth-frames of :func:`simgen.dataset.execute.job_cloth_frames`).
@@ -41,6 +47,7 @@ class _Queued:
     material: object
     num_out: int
     betas: np.ndarray
+    factor: int = 1          # the job's substeps_factor: pool frames per frame of its own
 
 
 @dataclass(eq=False)
@@ -48,7 +55,9 @@ class _Running:
     tag: object
     schedule: JobSchedule
     recorder: JobRecorder
+    factor: int = 1          # pool frames per schedule frame (the job's substeps_factor)
     cursor: int = 0          # index into schedule.frames of the next frame to step
+    sub: int = 0             # pool frames of that frame already stepped (< factor)
 
 
 class SimulationPool:
@@ -89,7 +98,7 @@ class SimulationPool:
         self.refused: list = []
         self._recent: deque = deque(maxlen=32)   # [s] wall time of the last frames
         self.frames_run = 0          # frames stepped
-        self.cloth_frames = 0        # slot-frames stepped (busy slots summed over frames)
+        self.cloth_frames = 0        # job frames stepped (a job at k times the substeps: one per k pool frames)
         self.step_time = 0.0         # [s] the solver's stepping summed over frames
         self.wall = 0.0              # [s] wall time of step() summed
 
@@ -121,7 +130,8 @@ class SimulationPool:
         num_out = int(np.floor(clip.duration * s.fps + 1e-9)) + 1 if job.frames is None else int(job.frames)
         betas = (np.zeros(self.body.num_betas) if job.betas is None
                  else self.body.check_betas(job.betas).reshape(-1))
-        self._queue.append(_Queued(job if tag is None else tag, job, clip, material, num_out, betas))
+        self._queue.append(_Queued(job if tag is None else tag, job, clip, material, num_out, betas,
+                                   int(job.substeps_factor)))
 
     def recent_frame_time(self) -> float | None:
         """[s] The median wall time of the last frames (after the first two, which load kernels and
@@ -136,8 +146,8 @@ class SimulationPool:
         return None if run is None else run.schedule.frames[run.cursor][0]
 
     def next_frames(self) -> int:
-        """Frames the longest running job still has to step (0 when nothing runs)."""
-        return max((len(r.schedule.frames) - r.cursor - (r.cursor < r.schedule.protocol_frames)
+        """Pool frames the longest running job still has to step (0 when nothing runs)."""
+        return max(((len(r.schedule.frames) - r.cursor - (r.cursor < r.schedule.protocol_frames)) * r.factor - r.sub
                     for r in self._running.values()), default=0)
 
     # -- stepping -----------------------------------------------------------------------------------
@@ -182,12 +192,19 @@ class SimulationPool:
         runner.run(*self._targets, where)
         rows, x, body = measure_frame(s, runner.betas_now, runner.step_time, t_frame)
         failed = runner.take_failures()
-        done, starts = [], np.asarray(s.model.vertex_start)
+        done, starts, framed = [], np.asarray(s.model.vertex_start), 0
         for slot in sorted(self._running):
             run = self._running[slot]
             if slot in failed:
                 done.append((slot, run.tag, run.recorder.failure(*failed[slot])))
+                framed += 1
                 continue
+            run.sub += 1
+            if run.sub < run.factor:      # part of the job's frame: its statistics add up, nothing recorded
+                run.recorder.hold(rows[slot])
+                continue
+            run.sub = 0
+            framed += 1
             xi = x[starts[slot]:starts[slot + 1]]
             bi = None if body is None else body[slot]
             phase, k = where[slot]
@@ -204,7 +221,7 @@ class SimulationPool:
         self.frames_run += 1
         if self.frames_run > 2:      # the first frames load kernels and capture CUDA graphs
             self._recent.append(wall)
-        self.cloth_frames += len(self._running)
+        self.cloth_frames += framed
         self.step_time += runner.step_time
         self.wall += wall
         ended = [slot for slot, _, _ in done]
@@ -214,18 +231,20 @@ class SimulationPool:
         return [(tag, res) for _, tag, res in done]
 
     def _cloth_frames_of(self, entry: _Queued) -> int:
+        """Pool frames ``entry`` will take (its frames times its substeps_factor)."""
         c = self.config
-        return c.relax_frames + c.ramp_frames + c.rest_frames + entry.num_out - 1
+        return (c.relax_frames + c.ramp_frames + c.rest_frames + entry.num_out - 1) * entry.factor
 
     def _start(self, slot: int, entry: _Queued) -> None:
         s, c = self.setup, self.config
-        schedule = JobSchedule(entry.clip, self._padded(entry.betas), s.fps, c.substeps, relax_frames=c.relax_frames,
-                               ramp_frames=c.ramp_frames, rest_frames=c.rest_frames, animate_frames=entry.num_out)
+        schedule = JobSchedule(entry.clip, self._padded(entry.betas), s.fps, c.substeps * entry.factor,
+                               relax_frames=c.relax_frames, ramp_frames=c.ramp_frames, rest_frames=c.rest_frames,
+                               animate_frames=entry.num_out)
         key = str(entry.job.key) if entry.job.key is not None else str(entry.tag)
-        recorder = JobRecorder(s, key, entry.clip, entry.num_out, entry.betas, entry.material)
+        recorder = JobRecorder(s, key, entry.clip, entry.num_out, entry.betas, entry.material, entry.factor)
         quats, trans = schedule.start_pose()
-        self.runner.place(slot, quats, trans, (s.start_positions + trans[None]).astype(np.float32))
-        self._running[slot] = _Running(entry.tag, schedule, recorder)
+        self.runner.place(slot, quats, trans, (s.start_positions + trans[None]).astype(np.float32), entry.factor)
+        self._running[slot] = _Running(entry.tag, schedule, recorder, entry.factor)
 
     def _padded(self, betas: np.ndarray) -> np.ndarray:
         b = np.zeros(max(self.body.num_betas, 1))
@@ -244,6 +263,8 @@ class SimulationPool:
         for slot, run in self._running.items():
             phase, k = run.schedule.frames[run.cursor]
             where[slot] = (phase, k)
-            quats[:, slot], trans[:, slot], betas[:, slot] = run.schedule.targets(phase, k)
+            rows = slice(run.sub * S, (run.sub + 1) * S)   # this pool frame's part of the job's frame
+            q, tr, b = run.schedule.targets(phase, k)
+            quats[:, slot], trans[:, slot], betas[:, slot] = q[rows], tr[rows], b[rows]
         self._targets = (quats, trans, betas)
         return where

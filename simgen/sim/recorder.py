@@ -115,6 +115,16 @@ def measure_frame(setup: BatchSetup, betas: np.ndarray, step_time: float, t_fram
     return rows, x, body
 
 
+def _merged_solver_stats(a: dict | None, b: dict) -> dict:
+    """The solver's entries of two batch frames' rows as one frame's: counts and times summed, the
+    depth before projection the deeper (``a`` None: ``b``'s)."""
+    keys = ("retries", "unresolved", "newton_iterations", "cg_iterations", "step_time", "wall_time")
+    if a is None:
+        return {k: b[k] for k in keys + ("depth_before_projection",)}
+    return {**{k: a[k] + b[k] for k in keys},
+            "depth_before_projection": max(a["depth_before_projection"], b["depth_before_projection"])}
+
+
 #: The solver's entries of a frame row that took no step (a clip's frame 0: the rest phase's end).
 _NO_STEP = dict(depth_before_projection=0.0, retries=0, unresolved=0, newton_iterations=0, cg_iterations=0,
                 step_time=0.0)
@@ -127,12 +137,17 @@ class JobRecorder:
     ``positions`` / ``stats`` (and the posed body with ``config.record_body``).
 
     setup: the :class:`BatchSetup`; key: the job's label; clip: its MotionClip; num_out: its
-    output frames; betas (B',): its target shape; material: its Material.
+    output frames; betas (B',): its target shape; material: its Material; substeps_factor: the job
+    runs at that many times the batch's substeps, each of its frames in that many batch frames
+    (:meth:`hold` the rows of all but the last).
     """
 
-    def __init__(self, setup: BatchSetup, key: str, clip, num_out: int, betas: np.ndarray, material) -> None:
+    def __init__(self, setup: BatchSetup, key: str, clip, num_out: int, betas: np.ndarray, material,
+                 substeps_factor: int = 1) -> None:
         self.setup, self.key, self.clip, self.num_out = setup, key, clip, int(num_out)
         self.betas, self.material = betas, material
+        self.factor = int(substeps_factor)
+        self._held: dict | None = None
         self._positions: list = []
         self._stats: list = []
         self._body: list = []
@@ -142,9 +157,16 @@ class JobRecorder:
         self._t_start = time.perf_counter()
         self.share = 0.0   # [s] this job's share of the batch's wall time (each frame's over its active slots)
 
+    def hold(self, row: dict) -> None:
+        """Keep the solver's statistics of a batch frame that stepped part of the job's coming frame:
+        :meth:`record` adds them to that frame's (sums; the deepest depth before projection)."""
+        self._held = _merged_solver_stats(self._held, row)
+
     def record(self, phase: str, k: int, row: dict, positions: np.ndarray, body: np.ndarray | None) -> None:
         """Keep frame (phase, k): its row of statistics, cloth [m] (V, 3) and posed body [m] (Vb, 3) or None;
         :meth:`record_start` for a clip's frame 0."""
+        if self._held is not None:
+            row, self._held = {**row, **_merged_solver_stats(self._held, row)}, None
         if phase != "animate":
             self._proto_positions.append(positions)
             self._proto_stats.append(row)
@@ -173,7 +195,8 @@ class JobRecorder:
         metadata = dict(
             key=self.key, garment=garment.name, garment_vertices=int(nv), garment_triangles=int(len(garment.faces)),
             body=s.body.name, body_vertices=int(s.body.num_vertices), motion=self.clip.name,
-            motion_fps=float(self.clip.fps), fps=s.fps, substeps=s.substeps, dt=s.dt, frames=self.num_out,
+            motion_fps=float(self.clip.fps), fps=s.fps, substeps=s.substeps * self.factor, dt=s.dt / self.factor,
+            frames=self.num_out,
             betas=[float(b) for b in self.betas], material=asdict(self.material),
             config=dict(relax_frames=cfg.relax_frames, ramp_frames=cfg.ramp_frames, rest_frames=cfg.rest_frames,
                         device=str(s.device), cuda_graph=s.use_graph),
@@ -190,7 +213,7 @@ class JobRecorder:
         return SimulationResult(
             positions=np.stack(self._positions),
             faces=np.asarray(garment.faces, dtype=np.int32),
-            fps=s.fps, dt=s.dt, stats=stats,
+            fps=s.fps, dt=s.dt / self.factor, stats=stats,
             protocol_positions=(np.stack(self._proto_positions) if self._proto_positions
                                 else np.zeros((0, nv, 3), np.float32)),
             protocol_phases=np.array(self._proto_phases, dtype=str),

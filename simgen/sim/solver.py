@@ -83,13 +83,14 @@ def solver_kernels(scalar) -> SimpleNamespace:
     zero = scalar(0.0)
 
     @wp.kernel(enable_backward=False, module=mod)
-    def predict(x: wp.array(dtype=vec3), v: wp.array(dtype=vec3), pinned: wp.array(dtype=wp.int32), h: scalar,
+    def predict(x: wp.array(dtype=vec3), v: wp.array(dtype=vec3), pinned: wp.array(dtype=wp.int32),
+                vertex_instance: wp.array(dtype=wp.int32), step_divisor: wp.array(dtype=wp.int32), h: scalar,
                 x_start: wp.array(dtype=vec3), x_hat: wp.array(dtype=vec3)):
         # Newton starts at x_t; pinned vertices follow their own velocity (kinematic) at once.
         i = wp.tid()
         xs = x[i]
         x_start[i] = xs
-        xh = xs + h * v[i]
+        xh = xs + (h / scalar(step_divisor[vertex_instance[i]])) * v[i]
         x_hat[i] = xh
         if pinned[i] != 0:
             x[i] = xh
@@ -141,9 +142,10 @@ def solver_kernels(scalar) -> SimpleNamespace:
         x[i] = x[i] - alpha[vertex_instance[i]] * d[i]
 
     @wp.kernel(enable_backward=False, module=mod)
-    def velocity(x: wp.array(dtype=vec3), x_start: wp.array(dtype=vec3), inv_h: scalar, v: wp.array(dtype=vec3)):
+    def velocity(x: wp.array(dtype=vec3), x_start: wp.array(dtype=vec3), vertex_instance: wp.array(dtype=wp.int32),
+                 step_divisor: wp.array(dtype=wp.int32), inv_h: scalar, v: wp.array(dtype=vec3)):
         i = wp.tid()
-        v[i] = (x[i] - x_start[i]) * inv_h
+        v[i] = (x[i] - x_start[i]) * (inv_h * scalar(step_divisor[vertex_instance[i]]))
 
     @wp.kernel(enable_backward=False, module=mod)
     def max_abs(d: wp.array(dtype=vec3), out: wp.array(dtype=scalar)):
@@ -484,7 +486,8 @@ class ImplicitSolver:
         self._counts["substeps"] += 1
         energy_test = cfg.guard and cfg.guard_energy
         self.bad.zero_()
-        wp.launch(k.predict, dim=n, device=dev, inputs=[x, v, m.vertex_pinned, h, self.x_start, self.x_hat])
+        wp.launch(k.predict, dim=n, device=dev, inputs=[x, v, m.vertex_pinned, m.vertex_instance, m.instance_step_divisor, h,
+                                                    self.x_start, self.x_hat])
         if self.self_contact is not None:
             self.self_contact.update(self.x_start)
         for it in range(cfg.newton_iterations):
@@ -531,7 +534,7 @@ class ImplicitSolver:
                 wp.launch(k.max_abs, dim=n, device=dev, inputs=[self.step_dir, self.update_norm])
                 if float(self.update_norm.numpy()[0]) < cfg.newton_tolerance:
                     break
-        wp.launch(k.velocity, dim=n, device=dev, inputs=[x, self.x_start, 1.0 / h, v])
+        wp.launch(k.velocity, dim=n, device=dev, inputs=[x, self.x_start, m.vertex_instance, m.instance_step_divisor, 1.0 / h, v])
         if not cfg.guard:
             if lag:
                 self._lag_contacts(state, body)

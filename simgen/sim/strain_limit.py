@@ -135,9 +135,10 @@ def strain_limit_kernels(scalar) -> SimpleNamespace:
         count[i] = zero
 
     @wp.kernel(enable_backward=False, module=mod)
-    def update_velocity(v: wp.array(dtype=vec3), moved: wp.array(dtype=vec3), inv_h: scalar):
+    def update_velocity(v: wp.array(dtype=vec3), moved: wp.array(dtype=vec3), vertex_instance: wp.array(dtype=wp.int32),
+                        step_divisor: wp.array(dtype=wp.int32), inv_h: scalar):
         i = wp.tid()
-        v[i] = v[i] + moved[i] * inv_h
+        v[i] = v[i] + moved[i] * (inv_h * scalar(step_divisor[vertex_instance[i]]))
         moved[i] = vec3(zero)
 
     return SimpleNamespace(triangle_corrections=triangle_corrections, apply_corrections=apply_corrections,
@@ -169,7 +170,8 @@ class StrainLimiter:
 
     def apply(self, state, h: float | None = None) -> None:
         """Limit the stretch of ``state.positions`` in place; with h [s], add the displacement / h
-        to ``state.velocities`` (the step the positions came from took h)."""
+        to ``state.velocities`` (the step the positions came from took h, divided by each instance's
+        ``instance_step_divisor``)."""
         m, k = self.model, self._kernels
         if m.num_triangles == 0:
             return
@@ -181,6 +183,7 @@ class StrainLimiter:
                       inputs=[state.positions, m.vertex_pinned, self._dx, self._count, self._moved])
         if h is not None:
             wp.launch(k.update_velocity, dim=m.num_vertices, device=m.device,
-                      inputs=[state.velocities, self._moved, m.scalar(1.0 / h)])
+                      inputs=[state.velocities, self._moved, m.vertex_instance, m.instance_step_divisor,
+                              m.scalar(1.0 / h)])
         else:
             self._moved.zero_()

@@ -58,6 +58,7 @@ def damping_kernels(scalar) -> SimpleNamespace:
         beta: wp.array(dtype=scalar),
         tri_instance: wp.array(dtype=wp.int32),
         tri_slots: wp.array2d(dtype=wp.int32),
+        step_divisor: wp.array(dtype=wp.int32),
         inv_dt: scalar,
         scale: scalar,
         project: int,
@@ -74,7 +75,7 @@ def damping_kernels(scalar) -> SimpleNamespace:
         e = zero
         c = zero
         if t < n:
-            c = beta[t] * inv_dt * rest_area[t] * scale
+            c = beta[t] * (inv_dt * scalar(step_divisor[tri_instance[t]])) * rest_area[t] * scale
         if c > zero:
             i0 = tris[t, 0]
             i1 = tris[t, 1]
@@ -105,6 +106,7 @@ def damping_kernels(scalar) -> SimpleNamespace:
         beta: wp.array(dtype=scalar),
         hinge_instance: wp.array(dtype=wp.int32),
         hinge_slots: wp.array2d(dtype=wp.int32),
+        step_divisor: wp.array(dtype=wp.int32),
         inv_dt: scalar,
         scale: scalar,
         want_energy: int,
@@ -120,7 +122,7 @@ def damping_kernels(scalar) -> SimpleNamespace:
         value = zero
         k = zero
         if e < n:
-            k = beta[e] * inv_dt * stiffness[e] * scale
+            k = beta[e] * (inv_dt * scalar(step_divisor[hinge_instance[e]])) * stiffness[e] * scale
         if k > zero:
             j0 = hinges[e, 0]
             j1 = hinges[e, 1]
@@ -145,6 +147,7 @@ def damping_kernels(scalar) -> SimpleNamespace:
         alpha: wp.array(dtype=scalar),
         vertex_instance: wp.array(dtype=wp.int32),
         diag_slots: wp.array(dtype=wp.int32),
+        step_divisor: wp.array(dtype=wp.int32),
         inv_dt: scalar,
         scale: scalar,
         want_energy: int,
@@ -160,7 +163,7 @@ def damping_kernels(scalar) -> SimpleNamespace:
         e = zero
         k = zero
         if i < n:
-            k = alpha[i] * vertex_mass[i] * inv_dt * scale
+            k = alpha[i] * vertex_mass[i] * (inv_dt * scalar(step_divisor[vertex_instance[i]])) * scale
         if k > zero:
             d = x[i] - x_start[i]
             e = scalar(0.5) * k * wp.dot(d, d)
@@ -194,12 +197,12 @@ def eval_damping(model, positions, start_positions, dt: float, *, energy=None, g
     if model.num_triangles:
         launch_blocked(k.membrane, model.num_triangles, dev, [
             positions, start_positions, model.triangles, model.tri_inv_rest, model.tri_rest_area, model.tri_lambda,
-            model.tri_mu, model.tri_damping, model.tri_instance, model.tri_slots, inv_dt, scale, int(project),
+            model.tri_mu, model.tri_damping, model.tri_instance, model.tri_slots, model.instance_step_divisor, inv_dt, scale, int(project),
             we, wg, wh, e, g, h])
     if model.num_hinges:
         launch_blocked(k.bending, model.num_hinges, dev, [
             positions, start_positions, model.hinges, model.hinge_stiffness, model.hinge_damping,
-            model.hinge_instance, model.hinge_slots, inv_dt, scale, we, wg, wh, e, g, h])
+            model.hinge_instance, model.hinge_slots, model.instance_step_divisor, inv_dt, scale, we, wg, wh, e, g, h])
     launch_blocked(k.mass, model.num_vertices, dev, [
         positions, start_positions, model.vertex_mass, model.vertex_damping_mass, model.vertex_instance,
-        model.diag_slots, inv_dt, scale, we, wg, wh, e, g, h])
+        model.diag_slots, model.instance_step_divisor, inv_dt, scale, we, wg, wh, e, g, h])

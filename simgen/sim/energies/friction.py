@@ -56,8 +56,9 @@ def friction_kernels(scalar) -> SimpleNamespace:
         lag_face: wp.array(dtype=wp.int32),
         lag_bary: wp.array(dtype=wp.vec2),
         lag_force: wp.array(dtype=scalar),
+        step_divisor: wp.array(dtype=wp.int32),
         dt: scalar,
-        eps: scalar,
+        eps_step: scalar,
         scale: scalar,
         want_energy: int,
         want_grad: int,
@@ -78,7 +79,9 @@ def friction_kernels(scalar) -> SimpleNamespace:
         b = lag_bary[i]
         v_body = vec3(wp.mesh_eval_velocity(mesh, face, b[0], b[1]))
         n = lag_normal[i]
-        disp = x[i] - x_start[i] - dt * v_body
+        f = scalar(step_divisor[inst])
+        eps = eps_step / f  # eps_v h of this instance's step
+        disp = x[i] - x_start[i] - (dt / f) * v_body
         u = disp - wp.dot(disp, n) * n
         y = wp.length(u)
         # f0, f1/y and the u u^T coefficient (f1' y - f1) / y^3 of the two regimes.
@@ -128,5 +131,6 @@ def eval_friction(model, positions, start_positions, body_meshes, frame, dt: flo
     wp.launch(friction_kernels(model.scalar).friction, dim=model.num_vertices, device=model.device, inputs=[
         positions, start_positions, model.vertex_instance, body_meshes, model.vertex_friction, model.vertex_mass,
         _max_load_accel(params), model.diag_slots,
-        frame.normal, frame.face, frame.bary, frame.force, dt, params.smoothing_velocity * dt, scale,
+        frame.normal, frame.face, frame.bary, frame.force, model.instance_step_divisor, dt,
+        params.smoothing_velocity * dt, scale,
         we, wg, wh, e, g, h])

@@ -31,6 +31,7 @@ def inertia_kernels(scalar) -> SimpleNamespace:
         x_hat: wp.array(dtype=vec3),
         mass: wp.array(dtype=scalar),
         vertex_instance: wp.array(dtype=wp.int32),
+        step_divisor: wp.array(dtype=wp.int32),
         diag_slots: wp.array(dtype=wp.int32),
         inv_dt2: scalar,
         want_energy: int,
@@ -45,7 +46,8 @@ def inertia_kernels(scalar) -> SimpleNamespace:
         i = block * wp.block_dim() + lane
         e = scalar(0.0)
         if i < n:
-            k = mass[i] * inv_dt2
+            f = scalar(step_divisor[vertex_instance[i]])
+            k = mass[i] * (inv_dt2 * f * f)
             d = x[i] - x_hat[i]
             e = scalar(0.5) * k * wp.dot(d, d)
             if want_grad != 0:
@@ -72,5 +74,6 @@ def eval_inertia(model, positions, predicted, dt: float, *, energy=None, gradien
     if not (we or wg or wh):
         return
     launch_blocked(inertia_kernels(model.scalar).inertia, model.num_vertices, model.device, [
-        positions, predicted, model.vertex_mass, model.vertex_instance, model.diag_slots, scale / (dt * dt),
+        positions, predicted, model.vertex_mass, model.vertex_instance, model.instance_step_divisor, model.diag_slots,
+        scale / (dt * dt),
         we, wg, wh, e, g, h])
