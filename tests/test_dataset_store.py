@@ -391,7 +391,7 @@ def test_write_failure_is_one_error_and_resumable(tmp_path, monkeypatch, capsys)
 
 def _patch_pools(monkeypatch, change) -> list:
     """Pass every job's result through change(job, result) as its pool hands it over; returns the
-    pools run, as [pool, job ids, substeps] in order (:func:`_runs`)."""
+    pools run, as [pool, ["job id@substeps", ...]] in order of submission (:func:`_runs`)."""
     from simgen.sim.pool import SimulationPool
 
     pools: list = []
@@ -399,8 +399,8 @@ def _patch_pools(monkeypatch, change) -> list:
 
     def submitted(self, job, tag=None):
         if not pools or pools[-1][0] is not self:
-            pools.append((self, [], self.config.substeps))
-        pools[-1][1].append(tag.id)
+            pools.append((self, []))
+        pools[-1][1].append(f"{tag.id}@{self.config.substeps * job.substeps_factor}")
         return submit(self, job, tag)
 
     monkeypatch.setattr(SimulationPool, "submit", submitted)
@@ -409,7 +409,7 @@ def _patch_pools(monkeypatch, change) -> list:
 
 
 def _runs(pools) -> list:
-    return [(ids, substeps) for _, ids, substeps in pools]
+    return [ids for _, ids in pools]
 
 
 @pytest.mark.parametrize("retry", [True, False])
@@ -444,16 +444,17 @@ def test_strain_outlier_is_retried_with_smaller_steps(tmp_path, monkeypatch, ret
 
 
 def test_diverged_job_is_retried_with_smaller_steps(tmp_path, monkeypatch):
-    """A failing instance is a failure of its job alone; the driver re-runs it in a later pool with
-    the substep halved while the others are kept."""
+    """A failing instance is a failure of its job alone: it runs again with the substep halved in
+    the same pool (a slot at twice the substeps) while the others are kept."""
     calls = _patch_pools(monkeypatch, lambda j, r: _injected(j) if j.id == "walk_fast__b1p2" and j.attempt == 1
                          else r)
     spec = micro()
     (rep,) = generate_dataset(spec, out=str(tmp_path / "s"))
     assert rep.pending == 0 and not rep.failed and rep.written == 2
-    # One pool for every first attempt (template, fits, sequences longest first), then the retry.
-    assert _runs(calls) == [(["template", "zero", "b1p2", "walk_fast__zero", "walk_fast__b1p2"], spec.substeps),
-                            (["walk_fast__b1p2"], 2 * spec.substeps)]
+    # One pool: every first attempt (template, fits, sequences longest first), then the retry.
+    s = spec.substeps
+    assert _runs(calls) == [[f"template@{s}", f"zero@{s}", f"b1p2@{s}", f"walk_fast__zero@{s}",
+                             f"walk_fast__b1p2@{s}", f"walk_fast__b1p2@{2 * s}"]]
     assert rep.retried == 1 and rep.retry_cloth_frames > 0
     ds = open_dataset(tmp_path / "s")
     a = ds.sequence("walk_fast__b1p2")["attrs"]["stats"]
@@ -468,7 +469,7 @@ def test_diverged_job_is_retried_with_smaller_steps(tmp_path, monkeypatch):
         out = tmp_path / f"t-{overlap}"
         (rep,) = generate_dataset(spec1.with_overrides(overlap_writes=overlap), out=str(out))
         assert rep.pending == 0 and not rep.failed
-        assert _runs(calls) == [(["template", "zero", "walk_fast__zero"], 10), (["template"], 20), (["zero"], 10)]
+        assert _runs(calls) == [["template@10", "zero@10", "walk_fast__zero@10"], ["template@20"], ["zero@10"]]
         ds = open_dataset(out)
         assert ds.template["stats"]["attempts"] == 2 and ds.fit("zero")["attrs"]["stats"]["substeps"] == 10
         assert ds.manifest["failed"] == {}
@@ -633,8 +634,8 @@ def test_one_pool_keeps_its_slots_full(tmp_path, monkeypatch):
 
 def _run_stopped_at_retry(monkeypatch, fails, spec, out):
     """Run ``spec`` into ``out`` with the jobs ``fails(job)`` failing their first attempt and the run
-    crashing as their retry pool starts (the manifest keeps the failures); then clear the patches
-    and return a fresh pool log (:func:`_patch_pools`) for the rerun."""
+    crashing as their retry starts (the manifest keeps the failures); then clear the patches and
+    return a fresh pool log (:func:`_patch_pools`) for the rerun."""
     from simgen.sim.pool import SimulationPool
 
     _patch_pools(monkeypatch, lambda j, r: _injected(j) if fails(j) and j.attempt == 1 else r)
@@ -653,15 +654,15 @@ def _run_stopped_at_retry(monkeypatch, fails, spec, out):
 
 
 def test_a_rerun_resumes_a_retry_at_its_attempt(tmp_path, monkeypatch):
-    """A run that stops after a job failed (here it crashes as its retry pool starts) leaves the
-    failure in the manifest; the next run simulates the job at the next attempt, not from the first."""
+    """A run that stops after a job failed (here it crashes as its retry starts) leaves the failure
+    in the manifest; the next run simulates the job at the next attempt, not from the first."""
     spec = micro()
     calls = _run_stopped_at_retry(monkeypatch, lambda j: j.id == "walk_fast__b1p2", spec, tmp_path / "s")
     m = json.loads((tmp_path / "s" / "manifest.json").read_text())
     assert m["failed"]["sequence:walk_fast__b1p2"]["attempts"] == 1 and set(m["sequences"]) == {"walk_fast__zero"}
     (rep,) = generate_dataset(spec, out=str(tmp_path / "s"))
     assert rep.pending == 0 and not rep.failed and rep.written == 1
-    assert _runs(calls) == [(["walk_fast__b1p2"], 2 * spec.substeps)]
+    assert _runs(calls) == [[f"walk_fast__b1p2@{2 * spec.substeps}"]]
     assert open_dataset(tmp_path / "s").sequence("walk_fast__b1p2")["attrs"]["stats"]["attempts"] == 2
 
 
@@ -671,5 +672,4 @@ def test_a_resumed_template_retry_runs_before_the_fits_that_need_it(tmp_path, mo
     (rep,) = generate_dataset(spec, out=str(tmp_path / "s"))
     assert rep.pending == 0 and not rep.failed
     # The template at its next attempt alone, then the fit that needs it (not first, to wait and run again).
-    assert [ids for ids, _ in _runs(calls)][:2] == [["template"], ["zero"]]
-    assert _runs(calls)[0][1] == 2 * spec.substeps
+    assert _runs(calls)[:2] == [[f"template@{2 * spec.substeps}"], [f"zero@{spec.substeps}"]]

@@ -14,10 +14,12 @@ takes no initial state.
 batching: a slot whose job ended takes the next one at the next frame, each job with its own start
 protocol) and hands each job that ends to a :class:`NodeWriter` (ground truth, statistics, Zarr,
 commit), in background threads behind the simulation with ``execution.overlap_writes``. A job
-that diverges comes back as a failure while the others are written; the driver runs it again in a
-later pool with the substep halved (attempt k runs substeps * 2^(k-1)) until
-``execution.max_attempts``. A sequence with a strain outlier (a triangle past the check's limit
-on some frame) is such a failure too while attempts are left (:func:`_strain_outlier`).
+that diverges fails while the others are written, and runs again in the same pool with the
+substep halved (attempt k runs substeps * 2^(k-1): the job's ``substeps_factor`` in the pool) until
+``execution.max_attempts``; its failed attempt's outcome says ``retry: "pool"``. A sequence with a
+strain outlier (a triangle past the check's limit on some frame) is such a failure too while
+attempts are left (:func:`_strain_outlier`). The template is not retried in the pool (the fits
+need it written first: the driver runs its retry alone, :mod:`simgen.dataset.generate`).
 """
 
 from __future__ import annotations
@@ -237,7 +239,7 @@ class NodeWriter:
         if outlier is not None:
             return {**_outcome_base(job), "ok": False, "message": outlier}
         summary.update(wall_time=float(res.metadata.get("wall_share", res.metadata["wall_time"])),
-                       batch_size=self.slots, attempts=job.attempt, substeps=self.config.substeps,
+                       batch_size=self.slots, attempts=job.attempt, substeps=int(res.metadata["substeps"]),
                        device=str(self.config.device))
         if job.kind == "template":
             arrays, attrs = self._template(res, summary)
@@ -385,10 +387,12 @@ def run_pool_task(task: BatchTask, *, progress=None, on_outcome=None, deadline: 
     running are dropped (the first ones start before any frame time is known); the jobs not started
     or dropped come back in ``not_done``, the planned cloth-frames of the dropped ones in
     ``abandoned_cloth_frames``. Jobs whose node is already committed (an earlier attempt of this
-    task) are not simulated again. Returns {outcomes, error, not_done, abandoned_cloth_frames,
-    slots, wall, cloth_frames, step_s, write_s, write_wait}: slots: the pool's; wall [s] the pool's
-    frames (simulation, statistics, host copies); step_s [s] the solver's stepping within them;
-    write_s [s] the node writes; write_wait [s] the part of them the simulation waited for. A store
+    task) are not simulated again; a failed job with attempts left runs again in the same pool
+    (:class:`_PoolRetries`). Returns {outcomes, error, not_done, abandoned_cloth_frames, slots,
+    wall, cloth_frames, step_s, write_s, write_wait, retry_cloth_frames, retry_wall}: slots: the
+    pool's; wall [s] the pool's frames (simulation, statistics, host copies); step_s [s] the
+    solver's stepping within them; write_s [s] the node writes; write_wait [s] the part of them the
+    simulation waited for; retry_*: the later attempts' frames and their share of the wall. A store
     write failure stops the task: ``error`` is one sentence (the store stays consistent; what was
     committed is kept).
     """
@@ -423,9 +427,10 @@ def run_pool_task(task: BatchTask, *, progress=None, on_outcome=None, deadline: 
         return report
     slots = min(pool_slots(spec, config.device, garment), len(todo))
     pool = SimulationPool(garment, body, slots, config, fps=spec.fps)
+    retries = _PoolRetries(spec, task.attempt, pool, on_outcome)
     for job in todo:
-        pool.submit(SimulationJob(job.clip, betas=job.betas, key=job.key), tag=job)
-    writes = _Writes(NodeWriter(spec, config, garment, body, loc, slots), spec.overlap_writes, on_outcome)
+        retries.submit(job)
+    writes = _Writes(NodeWriter(spec, config, garment, body, loc, slots), spec.overlap_writes, retries.outcome)
 
     def accept(job, frames) -> bool:
         frame_s = pool.recent_frame_time()
@@ -438,8 +443,13 @@ def run_pool_task(task: BatchTask, *, progress=None, on_outcome=None, deadline: 
     abandoned: list = []
     clock["ready"] = time.time()
     try:
-        while pool.busy or pool.queued:
+        while True:
+            if not (pool.busy or pool.queued):
+                writes.collect(wait=True)     # the last writes may send failed jobs back into the pool
+                if writes.error is not None or not (pool.busy or pool.queued):
+                    break
             for job, res in pool.step():
+                retries.ended(job, res)
                 writes.submit(job, res)
             writes.collect()
             if progress is not None:
@@ -454,14 +464,54 @@ def run_pool_task(task: BatchTask, *, progress=None, on_outcome=None, deadline: 
                 break
     finally:
         writes.close()
+        pool.refused += pool.drop_queue()   # retries of the writes that ended after the last frame
         pool.accept = None   # the closure holds the pool: free its device memory with the pool
         clock["end"] = time.time()
     report.update(not_done=pool.refused + abandoned,
                   abandoned_cloth_frames=sum(job_cloth_frames(spec, [j]) for j in abandoned), slots=slots,
                   outcomes=outcomes + writes.outcomes, error=writes.error, wall=pool.wall,
                   cloth_frames=pool.cloth_frames, step_s=pool.step_time, write_s=writes.write_s,
-                  write_wait=writes.wait_s, gpu_memory_high_bytes=_memory_high(config.device))
+                  write_wait=writes.wait_s, gpu_memory_high_bytes=_memory_high(config.device),
+                  retry_cloth_frames=retries.cloth_frames, retry_wall=retries.wall)
     return report
+
+
+class _PoolRetries:
+    """Sends a task's failed jobs back into its pool at twice the substeps (module doc).
+
+    spec: the store's spec; attempt: the task's (its pool's substeps); pool: the SimulationPool;
+    on_outcome: the caller's, handed every outcome after this has seen it. ``cloth_frames`` and
+    ``wall`` [s]: the frames of the later attempts that ended, and their share of the pool's time.
+    """
+
+    def __init__(self, spec, attempt: int, pool, on_outcome) -> None:
+        self.spec, self.attempt, self.pool, self.on_outcome = spec, int(attempt), pool, on_outcome
+        self.jobs: dict = {}     # key -> the Job of its latest attempt
+        self.cloth_frames = 0
+        self.wall = 0.0
+
+    def submit(self, job: Job) -> None:
+        from simgen.sim import SimulationJob
+
+        self.jobs[job.key] = job
+        factor = 2 ** (job.attempt - self.attempt)
+        self.pool.submit(SimulationJob(job.clip, betas=job.betas, key=job.key, substeps_factor=factor), tag=job)
+
+    def ended(self, job: Job, res) -> None:
+        if job.attempt > self.attempt:
+            self.cloth_frames += job_cloth_frames(self.spec, [job])
+            self.wall += float(getattr(res, "metadata", {}).get("wall_share", 0.0))
+
+    def outcome(self, o: dict) -> None:
+        job = self.jobs[f"{o['kind']}:{o['id']}"]
+        again = (not o["ok"] and not o.get("waiting") and job.kind != "template"
+                 and job.attempt < self.spec.max_attempts)
+        if again:
+            o["retry"] = "pool"
+        if self.on_outcome is not None:
+            self.on_outcome(o)       # the failure is in the manifest before its retry starts
+        if again:
+            self.submit(replace(job, attempt=job.attempt + 1))
 
 
 def _memory_high(device: str) -> int | None:

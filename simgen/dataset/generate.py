@@ -12,10 +12,11 @@ One store per garment (docs/architecture.md, "Dataset store"). For each store th
    frees up; on Ray the jobs are dealt into one pool per GPU worker
    (:mod:`simgen.dataset.distributed`);
 4. enters every outcome into the manifest (rewritten atomically every few seconds and after each
-   pool) and runs a failed job
-   (diverged, or a sequence with a strain outlier: ``execution.retry_strain_outliers``) again in a
-   later pool with the substep halved, up to ``max_attempts`` (a pool shares one substep; a failed
-   template relaxation runs again alone first, since the fits need it).
+   pool); a failed job (diverged, or a sequence with a strain outlier:
+   ``execution.retry_strain_outliers``) runs again with the substep halved, up to ``max_attempts``,
+   in the same pool (a slot at twice the substeps beside the others); a failed template
+   relaxation runs again alone in a later pool first, since the fits need it, and fits that ended
+   before it was written run again after it.
 
 ``max_sequences`` and ``time_budget`` make a run do a part of the plan (the store stays resumable:
 the next run continues); under a time budget a pool starts no job that it would not finish in time,
@@ -380,6 +381,9 @@ class _Driver:
                 if attempt > 1:
                     report.retry_cloth_frames += r["cloth_frames"]
                     report.retry_simulate_wall += r["wall"]
+                else:
+                    report.retry_cloth_frames += r["retry_cloth_frames"]
+                    report.retry_simulate_wall += r["retry_wall"]
             report.wall = time.perf_counter() - t0
             self.total -= job_cloth_frames(spec, not_done) - sum(r["abandoned_cloth_frames"] for r in results)
             self.store.save_manifest()
@@ -400,8 +404,8 @@ class _Driver:
                 "slots": r["slots"], "gpu_memory_high_bytes": r["gpu_memory_high_bytes"]}
 
     def record(self, o: dict) -> None:
-        """Enter one outcome into the manifest and the report; a failed job with attempts left is
-        queued for a later round with the substep halved."""
+        """Enter one outcome into the manifest and the report; a failed job with attempts left runs
+        again with the substep halved: in its own pool (``retry: "pool"``), else in a later round."""
         spec, report, store = self.spec, self.report, self.store
         job = self.by_key[f"{o['kind']}:{o['id']}"]
         if o.get("waiting"):
@@ -422,7 +426,12 @@ class _Driver:
         elif job.attempt < spec.max_attempts:
             self.say(f"{job.key} failed on attempt {job.attempt} ({o['message']}); retrying with "
                      f"{spec.substeps * 2 ** job.attempt} substeps")
-            self.retry.append(Job(**{**job.__dict__, "attempt": job.attempt + 1}))
+            again = Job(**{**job.__dict__, "attempt": job.attempt + 1})
+            if o.get("retry") == "pool":
+                self.by_key[again.key] = again
+                self.total += job_cloth_frames(spec, [again])
+            else:
+                self.retry.append(again)
             report.retried += 1
         else:
             report.failed[job.key] = o["message"]
