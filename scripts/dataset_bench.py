@@ -23,6 +23,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 
 THESIS_FRAMES = 120_989  # output frames of the thesis's T-shirt dataset (56 CMU sequences x 17 shapes)
@@ -70,6 +71,8 @@ def main(argv=None) -> int:
     p.add_argument("--out", help="store folder (default: a temporary folder, removed afterwards)")
     p.add_argument("--device", help="override the spec's device (cpu, cuda, cuda:N)")
     p.add_argument("--max-sequences", type=int)
+    p.add_argument("--shape-values", help="comma-separated values for the spec's 'axes' shapes instead of its own "
+                   "(a larger store for scaling runs: -2,-1.5,-1,-0.5,0.5,1,1.5,2 gives thesis-tshirt 33 shapes)")
     p.add_argument("--time-budget", type=float, help="seconds")
     p.add_argument("--batch-size", type=int)
     p.add_argument("--no-overlap-writes", action="store_true",
@@ -85,6 +88,10 @@ def main(argv=None) -> int:
     quiet_warp()
     spec = load_spec(a.spec).with_overrides(device=a.device, batch_size=a.batch_size,
                                             overlap_writes=False if a.no_overlap_writes else None)
+    if a.shape_values:
+        if spec.shapes_generator != "axes":
+            raise SystemExit(f"--shape-values needs a spec with 'axes' shapes; {spec.name} has {spec.shapes_generator!r}")
+        spec = replace(spec, shape_values=tuple(float(v) for v in a.shape_values.split(",")))
     device = spec.resolved_device()
     thesis_plan = plan_summary(load_spec("thesis-tshirt"))[0]
     overhead = thesis_plan["cloth_frames"] / thesis_plan["output_frames"]
@@ -123,7 +130,8 @@ def main(argv=None) -> int:
             "spec": spec.name,
             "sizes": {"garment": ds.garment_name, "vertices": ds.attrs["garment"]["vertices"],
                       "triangles": ds.attrs["garment"]["triangles"], "shapes": len(spec.shapes()),
-                      "motions": len(spec.motions()), "planned_sequences": r.planned_sequences,
+                      "shape_values": list(spec.shape_values), "motions": len(spec.motions()),
+                      "planned_sequences": r.planned_sequences,
                       "sequences_done": len(ds.sequence_ids()), "sequences_written_now": r.written,
                       "substeps": spec.substeps, "batch_size": spec.batch_size, "pool_slots": r.slots,
                       "overlap_writes": spec.overlap_writes,

@@ -444,17 +444,17 @@ def test_strain_outlier_is_retried_with_smaller_steps(tmp_path, monkeypatch, ret
 
 
 def test_diverged_job_is_retried_with_smaller_steps(tmp_path, monkeypatch):
-    """A failing instance is a failure of its job alone: it runs again with the substep halved in
-    the same pool (a slot at twice the substeps) while the others are kept."""
+    """A failing instance is a failure of its job alone; the driver re-runs it in a later pool with
+    the substep halved while the others are kept (the last job of its pool: none waits there)."""
     calls = _patch_pools(monkeypatch, lambda j, r: _injected(j) if j.id == "walk_fast__b1p2" and j.attempt == 1
                          else r)
     spec = micro()
     (rep,) = generate_dataset(spec, out=str(tmp_path / "s"))
     assert rep.pending == 0 and not rep.failed and rep.written == 2
-    # One pool: every first attempt (template, fits, sequences longest first), then the retry.
+    # One pool for every first attempt (template, fits, sequences longest first), then the retry.
     s = spec.substeps
-    assert _runs(calls) == [[f"template@{s}", f"zero@{s}", f"b1p2@{s}", f"walk_fast__zero@{s}",
-                             f"walk_fast__b1p2@{s}", f"walk_fast__b1p2@{2 * s}"]]
+    assert _runs(calls) == [[f"template@{s}", f"zero@{s}", f"b1p2@{s}", f"walk_fast__zero@{s}", f"walk_fast__b1p2@{s}"],
+                            [f"walk_fast__b1p2@{2 * s}"]]
     assert rep.retried == 1 and rep.retry_cloth_frames > 0
     ds = open_dataset(tmp_path / "s")
     a = ds.sequence("walk_fast__b1p2")["attrs"]["stats"]
@@ -481,6 +481,26 @@ def test_diverged_job_is_retried_with_smaller_steps(tmp_path, monkeypatch):
     assert list(rep.failed) == ["sequence:walk_fast__zero"] and rep.pending == 1
     r = check_dataset(tmp_path / "f")
     assert not r.passed and [p["check"] for p in r.problems] == ["failed"]
+
+
+def test_a_retry_joins_its_pool_while_jobs_wait_there(tmp_path, monkeypatch):
+    """A job that fails while other jobs still wait for a slot runs again in the same pool, in a slot
+    at twice the substeps (a job at the pool's substeps beside it), and is written like a retry run
+    alone: attempts 2, twice the substeps, and the store passes the check."""
+    calls = _patch_pools(monkeypatch, lambda j, r: _injected(j) if j.id == "walk_fast__zero" and j.attempt == 1
+                         else r)
+    spec = micro(batch_size=1, overlap_writes=False)       # one slot: walk_fast__b1p2 waits when it fails
+    (rep,) = generate_dataset(spec, out=str(tmp_path / "s"))
+    assert rep.pending == 0 and not rep.failed and rep.written == 2
+    s = spec.substeps
+    assert _runs(calls) == [[f"template@{s}", f"zero@{s}", f"b1p2@{s}", f"walk_fast__zero@{s}", f"walk_fast__b1p2@{s}",
+                             f"walk_fast__zero@{2 * s}"]]
+    frames = spec.protocol_frames() + spec.max_frames - 1
+    assert rep.retried == 1 and rep.retry_cloth_frames == frames and rep.retry_simulate_wall > 0
+    ds = open_dataset(tmp_path / "s")
+    a = ds.sequence("walk_fast__zero")["attrs"]["stats"]
+    assert a["attempts"] == 2 and a["substeps"] == 2 * s
+    assert ds.manifest["failed"] == {} and check_dataset(tmp_path / "s").passed
 
 
 def test_spec_mismatch_and_lock(tiny, tmp_path):

@@ -14,9 +14,11 @@ takes no initial state.
 batching: a slot whose job ended takes the next one at the next frame, each job with its own start
 protocol) and hands each job that ends to a :class:`NodeWriter` (ground truth, statistics, Zarr,
 commit), in background threads behind the simulation with ``execution.overlap_writes``. A job
-that diverges fails while the others are written, and runs again in the same pool with the
-substep halved (attempt k runs substeps * 2^(k-1): the job's ``substeps_factor`` in the pool) until
-``execution.max_attempts``; its failed attempt's outcome says ``retry: "pool"``. A sequence with a
+that diverges fails while the others are written, and runs again with the substep halved (attempt
+k runs substeps * 2^(k-1)) until ``execution.max_attempts``: in the same pool (the job's
+``substeps_factor`` there) while jobs still wait for a slot in it, and its failed attempt's outcome
+then says ``retry: "pool"``; once the queue ran dry, in a later, smaller pool run by the driver (a
+pool's frame costs about the same however few of its slots are busy). A sequence with a
 strain outlier (a triangle past the check's limit on some frame) is such a failure too while
 attempts are left (:func:`_strain_outlier`). The template is not retried in the pool (the fits
 need it written first: the driver runs its retry alone, :mod:`simgen.dataset.generate`).
@@ -477,7 +479,8 @@ def run_pool_task(task: BatchTask, *, progress=None, on_outcome=None, deadline: 
 
 
 class _PoolRetries:
-    """Sends a task's failed jobs back into its pool at twice the substeps (module doc).
+    """Sends a task's failed jobs back into its pool at twice the substeps while other jobs still
+    wait for a slot there (module doc).
 
     spec: the store's spec; attempt: the task's (its pool's substeps); pool: the SimulationPool;
     on_outcome: the caller's, handed every outcome after this has seen it. ``cloth_frames`` and
@@ -504,8 +507,11 @@ class _PoolRetries:
 
     def outcome(self, o: dict) -> None:
         job = self.jobs[f"{o['kind']}:{o['id']}"]
+        # Only while jobs wait for a slot: a pool's frame costs about the same with few slots busy,
+        # so a retry started once the queue ran dry would stretch the pool's tail at the full pool's
+        # price; the driver runs those in a later, smaller pool.
         again = (not o["ok"] and not o.get("waiting") and job.kind != "template"
-                 and job.attempt < self.spec.max_attempts)
+                 and job.attempt < self.spec.max_attempts and self.pool.queued > 0)
         if again:
             o["retry"] = "pool"
         if self.on_outcome is not None:

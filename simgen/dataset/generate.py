@@ -13,10 +13,11 @@ One store per garment (docs/architecture.md, "Dataset store"). For each store th
    (:mod:`simgen.dataset.distributed`);
 4. enters every outcome into the manifest (rewritten atomically every few seconds and after each
    pool); a failed job (diverged, or a sequence with a strain outlier:
-   ``execution.retry_strain_outliers``) runs again with the substep halved, up to ``max_attempts``,
-   in the same pool (a slot at twice the substeps beside the others); a failed template
-   relaxation runs again alone in a later pool first, since the fits need it, and fits that ended
-   before it was written run again after it.
+   ``execution.retry_strain_outliers``) runs again with the substep halved, up to ``max_attempts``:
+   in the same pool (a slot at twice the substeps beside the others) while jobs still wait there,
+   else in a later pool with the others of its attempt; a failed template relaxation runs again
+   alone in a later pool first, since the fits need it, and fits that ended before it was written
+   run again after it.
 
 ``max_sequences`` and ``time_budget`` make a run do a part of the plan (the store stays resumable:
 the next run continues); under a time budget a pool starts no job that it would not finish in time,

@@ -486,8 +486,8 @@ class ImplicitSolver:
         self._counts["substeps"] += 1
         energy_test = cfg.guard and cfg.guard_energy
         self.bad.zero_()
-        wp.launch(k.predict, dim=n, device=dev, inputs=[x, v, m.vertex_pinned, m.vertex_instance, m.instance_step_divisor, h,
-                                                    self.x_start, self.x_hat])
+        wp.launch(k.predict, dim=n, device=dev, inputs=[x, v, m.vertex_pinned, m.vertex_instance,
+                                                        m.instance_step_divisor, h, self.x_start, self.x_hat])
         if self.self_contact is not None:
             self.self_contact.update(self.x_start)
         for it in range(cfg.newton_iterations):
