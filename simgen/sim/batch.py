@@ -189,7 +189,7 @@ def setup_batch(garment, body, materials: list[Material], fps: float, config: Si
     state.positions.assign(x0)
     state.velocities.zero_()
     stats = FrameStats(model, collider, wbody, garment, body, contact=cfg.solver.contact)
-    inside = stats.measure(state.positions, np.zeros((N, max(body.num_betas, 1))))[0]["inside_count"]
+    inside = stats.measure(state.positions, np.zeros((N, max(body.num_betas, 1))), [0])[0]["inside_count"]
     if inside:
         # The garment must never start inside the body: project what a bad template left inside.
         collider.project(model, state, offset=cfg.solver.projection_offset,

@@ -90,14 +90,16 @@ class FrameStats:
             raise ValueError("every instance of the model must be a copy of the garment")
         self.crossings = CrossingCounter(garment.faces, nvg, str(dev), instances=ni)
 
-    def measure(self, positions: wp.array, betas: np.ndarray) -> list[dict]:
+    def measure(self, positions: wp.array, betas: np.ndarray, instances=None) -> list[dict | None]:
         """One dict per instance (keys: the penetration and placement entries of FRAME_STAT_KEYS);
-        betas (N, B): each instance's body shape now."""
+        betas (N, B): each instance's body shape now; instances: those to measure (None: all), the
+        others' entries are None (a pool's idle slots: their bodies are not refit either)."""
         from simgen.body._warp_kernels import skinning_kernel
         from simgen.sim.placement import placement_row
 
-        for m in self.winding_meshes:
-            m.refit()
+        chosen = range(len(self.winding_meshes)) if instances is None else sorted(instances)
+        for k in chosen:
+            self.winding_meshes[k].refit()
         model = self.model
         wp.launch(classify_inside, dim=model.num_vertices, device=model.device,
                   inputs=[positions, model.vertex_instance, self.winding_ids, self.query_distance,
@@ -116,11 +118,12 @@ class FrameStats:
         up = self.lbs_up.numpy() - lbs
         dist, depth, inside, self_hit = (a.numpy() for a in (self.distance, self.depth, self.inside, self.self_hit))
         crossing = self.crossings.count_points(positions)
-        rows = []
-        for k, (a, b) in enumerate(zip(self.starts[:-1], self.starts[1:])):
+        rows: list = [None] * len(self.winding_meshes)
+        for k in chosen:
+            a, b = self.starts[k], self.starts[k + 1]
             d, ins, sh = depth[a:b], inside[a:b], self_hit[a:b]
             regular = (ins != 0) & (sh == 0)
-            rows.append(dict(
+            rows[k] = dict(
                 max_depth=float(d.max(initial=0.0)),
                 max_depth_regular=float(d[regular].max(initial=0.0)),
                 inside_count=int(ins.sum()),
@@ -128,7 +131,7 @@ class FrameStats:
                 self_intersection_count=int(sh.sum()),
                 crossing_edges=int(crossing[k]),
                 **placement_row(x[a:b], lbs[k], up[k], dist[a:b], self.reference.support),
-            ))
+            )
         return rows
 
 

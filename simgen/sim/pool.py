@@ -190,7 +190,7 @@ class SimulationPool:
         where = self._frame_targets()
         s.solver.reset_stats()
         runner.run(*self._targets, where)
-        rows, x, body = measure_frame(s, runner.betas_now, runner.step_time, t_frame)
+        rows, x, body = measure_frame(s, runner.betas_now, runner.step_time, t_frame, list(self._running))
         failed = runner.take_failures()
         done, starts, framed = [], np.asarray(s.model.vertex_start), 0
         for slot in sorted(self._running):

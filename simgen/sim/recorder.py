@@ -94,20 +94,23 @@ class SimulationFailure:
     frame: int
 
 
-def measure_frame(setup: BatchSetup, betas: np.ndarray, step_time: float, t_frame: float) -> tuple:
-    """Measure every slot at the end of a frame.
+def measure_frame(setup: BatchSetup, betas: np.ndarray, step_time: float, t_frame: float, slots=None) -> tuple:
+    """Measure the slots at the end of a frame.
 
     betas (N, nb): each slot's body shape now; step_time [s]: the frame's stepping; t_frame [s]:
-    ``time.perf_counter()`` at the frame's start. Returns (rows, positions, body): one dict of
-    :data:`FRAME_STAT_KEYS` per slot, the cloth [m] (N*V, 3) float32, and the posed body [m]
-    (N, Vb, 3) with ``config.record_body`` (else None).
+    ``time.perf_counter()`` at the frame's start; slots: those to measure (None: all). Returns
+    (rows, positions, body): one dict of :data:`FRAME_STAT_KEYS` per slot (None for a slot not
+    measured), the cloth [m] (N*V, 3) float32, and the posed body [m] (N, Vb, 3) with
+    ``config.record_body`` (else None).
     """
     s = setup
-    rows = s.stats.measure(s.state.positions, betas)
+    rows = s.stats.measure(s.state.positions, betas, slots)
     st, per = s.solver.stats, s.solver.instance_stats
     x = s.state.positions.numpy().astype(np.float32)
     wall = time.perf_counter() - t_frame
     for i, row in enumerate(rows):
+        if row is None:
+            continue
         row.update(depth_before_projection=float(per["max_penetration"][i]), retries=int(per["retries"][i]),
                    unresolved=int(per["unresolved"][i]), newton_iterations=st["newton_iterations"],
                    cg_iterations=st["cg_iterations"], step_time=step_time, wall_time=wall)
