@@ -95,7 +95,7 @@ class FrameStats:
         betas (N, B): each instance's body shape now; instances: those to measure (None: all), the
         others' entries are None (a pool's idle slots: their bodies are not refit either)."""
         from simgen.body._warp_kernels import skinning_kernel
-        from simgen.sim.placement import placement_row
+        from simgen.sim.placement import placement_rows
 
         chosen = range(len(self.winding_meshes)) if instances is None else sorted(instances)
         for k in chosen:
@@ -114,24 +114,26 @@ class FrameStats:
         for rest, out in ((self.lbs_rest, self.lbs), (self.lbs_rest_up, self.lbs_up)):
             wp.launch(skinning_kernel, dim=out.shape, device=model.device,
                       inputs=[rest, self.wbody.transforms, self.skin_joint, self.skin_weight], outputs=[out])
-        x, lbs = positions.numpy(), self.lbs.numpy()
-        up = self.lbs_up.numpy() - lbs
-        dist, depth, inside, self_hit = (a.numpy() for a in (self.distance, self.depth, self.inside, self.self_hit))
-        crossing = self.crossings.count_points(positions)
-        rows: list = [None] * len(self.winding_meshes)
-        for k in chosen:
-            a, b = self.starts[k], self.starts[k + 1]
-            d, ins, sh = depth[a:b], inside[a:b], self_hit[a:b]
-            regular = (ins != 0) & (sh == 0)
-            rows[k] = dict(
-                max_depth=float(d.max(initial=0.0)),
-                max_depth_regular=float(d[regular].max(initial=0.0)),
-                inside_count=int(ins.sum()),
-                inside_share=float(ins.sum()) / max(b - a, 1),
-                self_intersection_count=int(sh.sum()),
-                crossing_edges=int(crossing[k]),
-                **placement_row(x[a:b], lbs[k], up[k], dist[a:b], self.reference.support),
-            )
+        # Every instance is a copy of the garment: per-instance arrays are rows of (N, V) ones.
+        ni, nvg = len(self.winding_meshes), len(self.template)
+        k = np.asarray(chosen, dtype=np.int64)
+        x = positions.numpy().reshape(ni, nvg, 3)[k]
+        lbs = self.lbs.numpy()[k]
+        up = self.lbs_up.numpy()[k] - lbs
+        dist, depth, inside, self_hit = (a.numpy().reshape(ni, nvg)[k]
+                                         for a in (self.distance, self.depth, self.inside, self.self_hit))
+        crossing = self.crossings.count_points(positions)[k]
+        regular = (inside != 0) & (self_hit == 0)
+        cols = dict(max_depth=depth.max(axis=1, initial=0.0),
+                    max_depth_regular=np.where(regular, depth, -np.inf).max(axis=1, initial=0.0),
+                    inside_count=inside.sum(axis=1), self_intersection_count=self_hit.sum(axis=1),
+                    crossing_edges=crossing,
+                    **placement_rows(x, lbs, up, dist, self.reference.support))
+        cols["inside_share"] = cols["inside_count"] / max(nvg, 1)
+        ints = ("inside_count", "self_intersection_count", "crossing_edges")
+        rows: list = [None] * ni
+        for j, i in enumerate(k):
+            rows[i] = {key: (int(v[j]) if key in ints else float(v[j])) for key, v in cols.items()}
         return rows
 
 

@@ -32,7 +32,8 @@ from dataclasses import dataclass
 import numpy as np
 
 __all__ = ["ON_BODY_DISTANCE", "SUPPORT_BAND", "MIN_BODY_SHARE", "MAX_SUPPORT_DROP", "FLOOR_TOLERANCE",
-           "PLACEMENT_KEYS", "GarmentReference", "garment_reference", "placement_row", "placement_problems"]
+           "PLACEMENT_KEYS", "GarmentReference", "garment_reference", "placement_row", "placement_rows",
+           "placement_problems"]
 
 ON_BODY_DISTANCE = 0.05        # [m] a vertex this close to the body surface is on the body
 SUPPORT_BAND = 0.05            # [m] template vertices this close below its top are the support
@@ -93,19 +94,29 @@ def garment_reference(garment, body) -> GarmentReference:
     return _CACHE[key]
 
 
-def placement_row(positions, lbs_positions, lbs_up, distance_to_body, support) -> dict:
-    """The measures of one frame: positions, lbs_positions [m] (V, 3) and lbs_up (V, 3) (the
-    skinned +y direction at each vertex, any length), the vertices' unsigned distance to the posed
-    body [m] (V,) (anything >= ON_BODY_DISTANCE where farther), support bool (V,). Returns the
-    :data:`PLACEMENT_KEYS`: body_share, lbs_offset [m], support_drop [m], min_height [m]."""
+def placement_rows(positions, lbs_positions, lbs_up, distance_to_body, support) -> dict:
+    """The measures of K frames (or instances) of one garment at once: positions, lbs_positions [m]
+    (K, V, 3) and lbs_up (K, V, 3) (the skinned +y direction at each vertex, any length), the
+    vertices' unsigned distance to the posed body [m] (K, V) (anything >= ON_BODY_DISTANCE where
+    farther), support bool (V,). Returns each of :data:`PLACEMENT_KEYS` as (K,) float64:
+    body_share, lbs_offset [m], support_drop [m], min_height [m]."""
     x = np.asarray(positions, dtype=np.float64)
-    d = x[support] - np.asarray(lbs_positions, dtype=np.float64)[support]
-    up = np.asarray(lbs_up, dtype=np.float64)[support]
-    up = up / np.maximum(np.linalg.norm(up, axis=1, keepdims=True), 1e-12)
-    return dict(body_share=float(np.mean(np.asarray(distance_to_body) < ON_BODY_DISTANCE)),
-                lbs_offset=float(np.median(np.linalg.norm(d, axis=1))) if len(d) else 0.0,
-                support_drop=float(np.median(-np.einsum("ij,ij->i", d, up))) if len(d) else 0.0,
-                min_height=float(x[:, 1].min()))
+    d = x[:, support] - np.asarray(lbs_positions, dtype=np.float64)[:, support]
+    up = np.asarray(lbs_up, dtype=np.float64)[:, support]
+    up = up / np.maximum(np.linalg.norm(up, axis=2, keepdims=True), 1e-12)
+    none = np.zeros(len(x))
+    return dict(body_share=np.mean(np.asarray(distance_to_body) < ON_BODY_DISTANCE, axis=1),
+                lbs_offset=np.median(np.linalg.norm(d, axis=2), axis=1) if d.shape[1] else none,
+                support_drop=np.median(-np.einsum("kij,kij->ki", d, up), axis=1) if d.shape[1] else none,
+                min_height=x[:, :, 1].min(axis=1))
+
+
+def placement_row(positions, lbs_positions, lbs_up, distance_to_body, support) -> dict:
+    """The measures of one frame (:func:`placement_rows` of positions, lbs_positions, lbs_up (V, 3),
+    distance_to_body (V,)), each a float."""
+    rows = placement_rows(np.asarray(positions)[None], np.asarray(lbs_positions)[None], np.asarray(lbs_up)[None],
+                          np.asarray(distance_to_body)[None], support)
+    return {k: float(v[0]) for k, v in rows.items()}
 
 
 def placement_problems(stats: dict, floor: float | None = 0.0, frames=None) -> list[str]:
