@@ -169,14 +169,16 @@ class FrameRunner:
         model, state, collider = s.model, s.state, s.collider
         starts = np.asarray(model.vertex_start)
         pinned, ids, vel = model.vertex_pinned.numpy(), collider.mesh_ids.numpy(), state.velocities.numpy()
-        divisor = model.instance_step_divisor.numpy()
+        divisor, active = model.instance_step_divisor.numpy(), model.instance_active.numpy()
         for i in slots:
             pinned[starts[i]:starts[i + 1]] = 1
             vel[starts[i]:starts[i + 1]] = 0.0
             ids[i] = 0
             divisor[i] = 1
+            active[i] = 0
         model.vertex_pinned.assign(pinned)
         model.instance_step_divisor.assign(divisor)
+        model.instance_active.assign(active)
         collider.mesh_ids.assign(ids)
         state.velocities.assign(vel)
 
@@ -191,9 +193,10 @@ class FrameRunner:
         starts = np.asarray(model.vertex_start)
         x, v = state.positions.numpy(), state.velocities.numpy()
         pinned, ids = model.vertex_pinned.numpy(), collider.mesh_ids.numpy()
-        divisor = model.instance_step_divisor.numpy()
+        divisor, active = model.instance_step_divisor.numpy(), model.instance_active.numpy()
         for i, (q, tr, pos, d) in self._placed.items():
             divisor[i] = d
+            active[i] = 1
             a, b = starts[i], starts[i + 1]
             x[a:b] = pos
             v[a:b] = 0.0
@@ -201,7 +204,8 @@ class FrameRunner:
             ids[i] = self._mesh_ids[i]
             self._q_now[i], self._tr_now[i], self._betas_now[i] = q, tr, 0.0
         for arr, host in ((state.positions, x), (state.velocities, v), (model.vertex_pinned, pinned),
-                          (collider.mesh_ids, ids), (model.instance_step_divisor, divisor)):
+                          (collider.mesh_ids, ids), (model.instance_step_divisor, divisor),
+                          (model.instance_active, active)):
             arr.assign(host)
         if s.body.num_betas > 0:
             s.wbody.set_shape(self._betas_now)

@@ -244,6 +244,8 @@ class ClothModel:
     - instance_step_divisor, int32 (I,): each instance's solver step is the step asked for divided
       by this, 1 at first (2 or 4: a pool slot that runs its job at twice or four times the
       substeps, :class:`simgen.sim.SimulationPool`); a power of two keeps the step's arithmetic exact.
+    - instance_active, int32 (I,): 1 at first; 0 for an idle pool slot (all pinned, no body), whose
+      membrane and bending elements the kernels then skip (its energy reads 0).
     - vertex_friction [-], (V,): Coulomb coefficient of the vertex's material.
     - vertex_damping_mass [1/s], (V,): Rayleigh alpha of the vertex's material.
     - vertex_body_part, int32 (V,): home body part for contact (-1: none); ``has_body_parts`` says
@@ -412,6 +414,7 @@ class ClothModel:
         self.vertex_instance = iarr(vertex_instance)
         self.vertex_pinned = iarr(pinned)
         self.instance_step_divisor = iarr(np.ones(len(instances)))
+        self.instance_active = iarr(np.ones(len(instances)))
         self.vertex_friction = farr(vertex_friction)
         self.vertex_damping_mass = farr(vertex_damping_mass)
         self.vertex_body_part = iarr(body_part)

@@ -132,6 +132,7 @@ def bending_kernels(scalar) -> SimpleNamespace:
         stiffness: wp.array(dtype=scalar),
         rest_angle: wp.array(dtype=scalar),
         hinge_instance: wp.array(dtype=wp.int32),
+        instance_active: wp.array(dtype=wp.int32),
         hinge_slots: wp.array2d(dtype=wp.int32),
         scale: scalar,
         want_energy: int,
@@ -145,7 +146,10 @@ def bending_kernels(scalar) -> SimpleNamespace:
         block, lane = wp.tid()
         e = block * wp.block_dim() + lane
         value = scalar(0.0)
+        live = False
         if e < n:
+            live = instance_active[hinge_instance[e]] != 0
+        if live:
             theta, g0, g1, g2, g3 = fn.dihedral_angle_grad(
                 x[hinges[e, 0]], x[hinges[e, 1]], x[hinges[e, 2]], x[hinges[e, 3]])
             k = stiffness[e] * scale
@@ -174,4 +178,4 @@ def eval_bending(model, positions, *, energy=None, gradient=None, hessian=None, 
     k = bending_kernels(model.scalar).bending
     launch_blocked(k, model.num_hinges, model.device, [
         positions, model.hinges, model.hinge_stiffness, model.hinge_rest_angle, model.hinge_instance,
-        model.hinge_slots, scale, we, wg, wh, e, g, h])
+        model.instance_active, model.hinge_slots, scale, we, wg, wh, e, g, h])

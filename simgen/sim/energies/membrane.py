@@ -147,6 +147,7 @@ def membrane_kernels(scalar) -> SimpleNamespace:
         lam: wp.array(dtype=scalar),
         mu: wp.array(dtype=scalar),
         tri_instance: wp.array(dtype=wp.int32),
+        instance_active: wp.array(dtype=wp.int32),
         tri_slots: wp.array2d(dtype=wp.int32),
         scale: scalar,
         project: int,
@@ -161,7 +162,10 @@ def membrane_kernels(scalar) -> SimpleNamespace:
         block, lane = wp.tid()
         t = block * wp.block_dim() + lane
         e = scalar(0.0)
+        live = False
         if t < n:
+            live = instance_active[tri_instance[t]] != 0
+        if live:
             i0 = tris[t, 0]
             i1 = tris[t, 1]
             i2 = tris[t, 2]
@@ -201,4 +205,4 @@ def eval_membrane(model, positions, *, energy=None, gradient=None, hessian=None,
     k = membrane_kernels(model.scalar).membrane
     launch_blocked(k, model.num_triangles, model.device, [
         positions, model.triangles, model.tri_inv_rest, model.tri_rest_area, model.tri_lambda, model.tri_mu,
-        model.tri_instance, model.tri_slots, scale, int(project), we, wg, wh, e, g, h])
+        model.tri_instance, model.instance_active, model.tri_slots, scale, int(project), we, wg, wh, e, g, h])
