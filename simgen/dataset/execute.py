@@ -18,7 +18,7 @@ that diverges fails while the others are written, and runs again with the subste
 k runs substeps * 2^(k-1)) until ``execution.max_attempts``: in the same pool (the job's
 ``substeps_factor`` there) while jobs still wait for a slot in it, and its failed attempt's outcome
 then says ``retry: "pool"``; once the queue ran dry, in a later, smaller pool run by the driver (a
-pool's idle slots are pinned, not skipped: they cost the kernels as much as busy ones). A sequence with a
+pool's idle slots cost most of what busy ones cost: BENCHMARKS.md). A sequence with a
 strain outlier (a triangle past the check's limit on some frame) is such a failure too while
 attempts are left (:func:`_strain_outlier`). The template is not retried in the pool (the fits
 need it written first: the driver runs its retry alone, :mod:`simgen.dataset.generate`).
@@ -507,7 +507,7 @@ class _PoolRetries:
 
     def outcome(self, o: dict) -> None:
         job = self.jobs[f"{o['kind']}:{o['id']}"]
-        # Only while jobs wait for a slot: idle slots cost the kernels as much as busy ones, so a
+        # Only while jobs wait for a slot: idle slots cost most of what busy ones cost, so a
         # retry started once the queue ran dry would stretch the pool's tail at the full pool's
         # price; the driver runs those in a later, smaller pool.
         again = (not o["ok"] and not o.get("waiting") and job.kind != "template"

@@ -18,7 +18,8 @@ finite but still fails the guard is kept and counted unresolved. With self-conta
 that ends the frame through itself is then untangled (:mod:`simgen.sim.tangle_repair`).
 
 A slot is active (its job steps) or idle: pinned where it is, still and without a body, so it
-takes no part in the physics (its vertices still cost the kernels their work). :meth:`FrameRunner.place`
+takes no part in the physics (the membrane and bending kernels skip it, ``ClothModel.instance_active``;
+the body's posing and refits, contact and the solver's other launches still pass over it). :meth:`FrameRunner.place`
 starts a job in an idle slot before the next frame: its garment at its start positions, and the
 body of every slot posed where it is, the new slot's at the job's start pose, with no velocity.
 """
