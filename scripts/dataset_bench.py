@@ -90,7 +90,8 @@ def main(argv=None) -> int:
                                             overlap_writes=False if a.no_overlap_writes else None)
     if a.shape_values:
         if spec.shapes_generator != "axes":
-            raise SystemExit(f"--shape-values needs a spec with 'axes' shapes; {spec.name} has {spec.shapes_generator!r}")
+            raise SystemExit(f"--shape-values needs a spec with 'axes' shapes; {spec.name} has "
+                             f"{spec.shapes_generator!r}")
         spec = replace(spec, shape_values=tuple(float(v) for v in a.shape_values.split(",")))
     device = spec.resolved_device()
     thesis_plan = plan_summary(load_spec("thesis-tshirt"))[0]

@@ -343,7 +343,8 @@ class ImplicitSolver:
 
     def step(self, state_in: ClothState, state_out: ClothState, body: BodyCollider | None, dt: float, *,
              deferred_guard: bool = False, substeps: int | None = None) -> None:
-        """Advance ``state_in`` by dt [s] into ``state_out`` (they may be the same object).
+        """Advance ``state_in`` by dt [s] into ``state_out`` (they may be the same object); instance
+        k advances by dt / ``model.instance_step_divisor[k]``.
 
         body: the :class:`BodyCollider` (one body per instance, already :meth:`~BodyCollider.update`d
         to the end of this step; with substeps it is interpolated from its previous position), or
@@ -534,7 +535,8 @@ class ImplicitSolver:
                 wp.launch(k.max_abs, dim=n, device=dev, inputs=[self.step_dir, self.update_norm])
                 if float(self.update_norm.numpy()[0]) < cfg.newton_tolerance:
                     break
-        wp.launch(k.velocity, dim=n, device=dev, inputs=[x, self.x_start, m.vertex_instance, m.instance_step_divisor, 1.0 / h, v])
+        wp.launch(k.velocity, dim=n, device=dev,
+                  inputs=[x, self.x_start, m.vertex_instance, m.instance_step_divisor, 1.0 / h, v])
         if not cfg.guard:
             if lag:
                 self._lag_contacts(state, body)

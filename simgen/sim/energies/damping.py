@@ -197,8 +197,8 @@ def eval_damping(model, positions, start_positions, dt: float, *, energy=None, g
     if model.num_triangles:
         launch_blocked(k.membrane, model.num_triangles, dev, [
             positions, start_positions, model.triangles, model.tri_inv_rest, model.tri_rest_area, model.tri_lambda,
-            model.tri_mu, model.tri_damping, model.tri_instance, model.tri_slots, model.instance_step_divisor, inv_dt, scale, int(project),
-            we, wg, wh, e, g, h])
+            model.tri_mu, model.tri_damping, model.tri_instance, model.tri_slots, model.instance_step_divisor, inv_dt,
+            scale, int(project), we, wg, wh, e, g, h])
     if model.num_hinges:
         launch_blocked(k.bending, model.num_hinges, dev, [
             positions, start_positions, model.hinges, model.hinge_stiffness, model.hinge_damping,
