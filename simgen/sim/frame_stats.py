@@ -90,10 +90,11 @@ class FrameStats:
             raise ValueError("every instance of the model must be a copy of the garment")
         self.crossings = CrossingCounter(garment.faces, nvg, str(dev), instances=ni)
 
-    def measure(self, positions: wp.array, betas: np.ndarray, instances=None) -> list[dict | None]:
+    def measure(self, positions: wp.array, betas: np.ndarray, instances=None, host_positions=None) -> list[dict | None]:
         """One dict per instance (keys: the penetration and placement entries of FRAME_STAT_KEYS);
         betas (N, B): each instance's body shape now; instances: those to measure (None: all), the
-        others' entries are None (a pool's idle slots: their bodies are not refit either)."""
+        others' entries are None (a pool's idle slots: their bodies are not refit either);
+        host_positions: ``positions`` already on the host (V, 3), to spare a second copy."""
         from simgen.body._warp_kernels import skinning_kernel
         from simgen.sim.placement import placement_rows
 
@@ -117,7 +118,7 @@ class FrameStats:
         # Every instance is a copy of the garment: per-instance arrays are rows of (N, V) ones.
         ni, nvg = len(self.winding_meshes), len(self.template)
         k = np.asarray(chosen, dtype=np.int64)
-        x = positions.numpy().reshape(ni, nvg, 3)[k]
+        x = (positions.numpy() if host_positions is None else host_positions).reshape(ni, nvg, 3)[k]
         lbs = self.lbs.numpy()[k]
         up = self.lbs_up.numpy()[k] - lbs
         dist, depth, inside, self_hit = (a.numpy().reshape(ni, nvg)[k]

@@ -104,9 +104,10 @@ def measure_frame(setup: BatchSetup, betas: np.ndarray, step_time: float, t_fram
     ``config.record_body`` (else None).
     """
     s = setup
-    rows = s.stats.measure(s.state.positions, betas, slots)
+    x = s.state.positions.numpy()   # a fresh host copy from a GPU; on the CPU a view of the state
+    x = np.array(x, dtype=np.float32) if s.state.positions.device.is_cpu else np.asarray(x, dtype=np.float32)
+    rows = s.stats.measure(s.state.positions, betas, slots, host_positions=x)
     st, per = s.solver.stats, s.solver.instance_stats
-    x = s.state.positions.numpy().astype(np.float32)
     wall = time.perf_counter() - t_frame
     for i, row in enumerate(rows):
         if row is None:
