@@ -503,6 +503,26 @@ def test_a_retry_joins_its_pool_while_jobs_wait_there(tmp_path, monkeypatch):
     assert ds.manifest["failed"] == {} and check_dataset(tmp_path / "s").passed
 
 
+def test_a_task_whose_nodes_are_all_committed_reports_like_any(tmp_path):
+    """A pool task run again after its jobs were all committed (a Ray task retried after its worker
+    died past its last commit) simulates nothing and returns every field a task returns."""
+    from simgen import body as body_pkg
+    from simgen.dataset.execute import BatchTask, run_pool_task
+    from simgen.dataset.generate import plan_jobs
+
+    spec = micro(shapes=["zero"])
+    out = tmp_path / "s"
+    (rep,) = generate_dataset(spec, out=str(out))
+    assert rep.written == 1
+    jobs = plan_jobs(spec, spec.garments[0], body_pkg.load(spec.body))
+    again = run_pool_task(BatchTask(location=str(out), spec=spec, garment=spec.garments[0], jobs=jobs))
+    # Every field the driver reads from a task (generate._Driver._rounds and _task_entry).
+    read = {"outcomes", "error", "not_done", "abandoned_cloth_frames", "slots", "wall", "cloth_frames", "step_s",
+            "write_s", "write_wait", "retry_cloth_frames", "retry_wall", "clock", "gpu_memory_high_bytes"}
+    assert read <= set(again) and again["cloth_frames"] == 0 and again["retry_cloth_frames"] == 0
+    assert [o["reused"] for o in again["outcomes"]] == [True] * len(jobs)
+
+
 def test_spec_mismatch_and_lock(tiny, tmp_path):
     spec = load_spec("tiny").with_overrides(substeps=5)
     with pytest.raises(InputError, match=r"different spec \(field 'substeps': 10 there, 5 now\)"):

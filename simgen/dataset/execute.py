@@ -423,7 +423,7 @@ def run_pool_task(task: BatchTask, *, progress=None, on_outcome=None, deadline: 
             todo.append(job)
     report = {"outcomes": outcomes, "error": None, "not_done": [], "abandoned_cloth_frames": 0, "slots": 0,
               "wall": 0.0, "cloth_frames": 0, "step_s": 0.0, "write_s": 0.0, "write_wait": 0.0,
-              "clock": clock, "gpu_memory_high_bytes": None}
+              "clock": clock, "gpu_memory_high_bytes": None, "retry_cloth_frames": 0, "retry_wall": 0.0}
     if not todo:
         clock["ready"] = clock["end"] = time.time()
         return report
