@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from dataset_bench import _commit, _device  # noqa: E402  (scripts/ sibling: commit and device records)
+from dataset_bench import _commit, _device, _emit  # noqa: E402  (scripts/ sibling: records and output)
 
 
 def _time_pool(garment, body, cfg, fps: float, slots: int, busy: int, motion: str, warmup: int, frames: int) -> dict:
@@ -79,10 +79,7 @@ def main(argv=None) -> int:
               "sizes": {"garment": garment.name, "vertices": int(len(garment.vertices)), "slots": a.slots,
                         "substeps": cfg.substeps, "motion": a.motion, "timed_frames": a.frames},
               "runs": runs}
-    text = json.dumps(result, indent=2)
-    print(text)
-    if a.out:
-        a.out.write_text(text + "\n")
+    _emit(result, a.out)
     return 0
 
 

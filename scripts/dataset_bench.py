@@ -92,7 +92,11 @@ def main(argv=None) -> int:
         if spec.shapes_generator != "axes":
             raise SystemExit(f"--shape-values needs a spec with 'axes' shapes; {spec.name} has "
                              f"{spec.shapes_generator!r}")
-        spec = replace(spec, shape_values=tuple(float(v) for v in a.shape_values.split(",")))
+        try:
+            values = tuple(float(v) for v in a.shape_values.split(","))
+        except ValueError:
+            raise SystemExit(f"--shape-values must be comma-separated numbers, got {a.shape_values!r}") from None
+        spec = replace(spec, shape_values=values)
     device = spec.resolved_device()
     thesis_plan = plan_summary(load_spec("thesis-tshirt"))[0]
     overhead = thesis_plan["cloth_frames"] / thesis_plan["output_frames"]

@@ -108,6 +108,19 @@ def _injected(job):
     return SimulationFailure(job.key, "diverged (injected)", "animate", 1)
 
 
+def assert_complete_tiny_store(out: Path) -> None:
+    """``out`` holds the whole `tiny` plan once: every sequence, nothing staged, no lock, and a
+    manifest listing every node with the checksum of its arrays."""
+    assert sorted(os.listdir(out / "sequences")) == sorted(TINY_IDS | {"zarr.json"})
+    assert not (out / ".staging").exists() or os.listdir(out / ".staging") == []
+    assert not (out / ".lock").exists()
+    m = json.loads((out / "manifest.json").read_text())
+    assert set(m["sequences"]) == TINY_IDS and set(m["fits"]) == {"zero", "b1p2"} and m["template"]
+    assert m["failed"] == {}
+    for sid, entry in m["sequences"].items():
+        assert arrays_checksum(node_arrays(Location(out), f"sequences/{sid}")) == entry["checksum"], sid
+
+
 def test_kill_leaves_no_half_sequence(tiny):
     k = tiny["killed"]
     half_id = k["half"].split("-", 1)[1].rsplit("-", 1)[0]
@@ -135,15 +148,8 @@ def test_resume_completes_without_loss_or_duplicates(tiny):
     assert rep.reconcile["adopted"] == len(tiny["after_kill_nodes"] - listed)
     assert rep.written == 4 - len(tiny["after_kill_committed"])
     assert rep.pending == 0 and not rep.failed
-    assert sorted(os.listdir(out / "sequences")) == sorted(TINY_IDS | {"zarr.json"})
-    assert not (out / ".staging").exists() or os.listdir(out / ".staging") == []
-    assert not (out / ".lock").exists()
+    assert_complete_tiny_store(out)
     m = json.loads((out / "manifest.json").read_text())
-    assert set(m["sequences"]) == TINY_IDS and set(m["fits"]) == {"zero", "b1p2"} and m["template"]
-    assert m["failed"] == {}
-    for sid, entry in m["sequences"].items():
-        arrays = node_arrays(Location(out), f"sequences/{sid}")
-        assert arrays_checksum(arrays) == entry["checksum"]
     # Sequences committed before the kill are untouched.
     for sid, c in tiny["checksums_at_kill"].items():
         assert m["sequences"][sid]["checksum"] == c
