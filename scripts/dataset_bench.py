@@ -72,7 +72,8 @@ def main(argv=None) -> int:
     p.add_argument("--device", help="override the spec's device (cpu, cuda, cuda:N)")
     p.add_argument("--max-sequences", type=int)
     p.add_argument("--shape-values", help="comma-separated values for the spec's 'axes' shapes instead of its own "
-                   "(a larger store for scaling runs: -2,-1.5,-1,-0.5,0.5,1,1.5,2 gives thesis-tshirt 33 shapes)")
+                   "(a larger store for scaling runs: --shape-values=-2,-1.5,-1,1,1.5,2 gives thesis-tshirt 25 "
+                   "shapes; write it with '=': a value that starts with '-' is taken for an option otherwise)")
     p.add_argument("--time-budget", type=float, help="seconds")
     p.add_argument("--batch-size", type=int)
     p.add_argument("--no-overlap-writes", action="store_true",

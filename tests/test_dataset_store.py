@@ -509,6 +509,60 @@ def test_a_retry_joins_its_pool_while_jobs_wait_there(tmp_path, monkeypatch):
     assert ds.manifest["failed"] == {} and check_dataset(tmp_path / "s").passed
 
 
+class _TwoWorkers:
+    """An executor with two workers that runs its pool tasks in this process, the oldest first when
+    the driver asks for the next to end, and logs each start (with its jobs) and end."""
+
+    parallel = 2
+
+    def __init__(self) -> None:
+        self.waiting: list = []
+        self.log: list = []
+
+    def start(self, task, budget_s, on_outcome, progress):
+        handle = len(self.log)
+        self.log.append(("start", handle, [j.id for j in task.jobs]))
+        self.waiting.append((handle, task, on_outcome))
+        return handle
+
+    def next(self):
+        from simgen.dataset.execute import run_pool_task
+
+        handle, task, on_outcome = self.waiting.pop(0)
+        result = run_pool_task(task, on_outcome=on_outcome)
+        self.log.append(("end", handle))
+        return handle, result
+
+    def close(self) -> None:
+        pass
+
+
+@pytest.mark.parametrize("fails", ["walk_fast__b1p2", "template"])
+def test_a_retry_starts_on_the_first_free_worker(tmp_path, monkeypatch, fails):
+    """With two workers, a job that fails in the pool that ends first runs again at once on the
+    freed worker, while the other pool still steps, not after it; a failed template runs again alone
+    and the fits that waited for it start only after it ends."""
+    from simgen.dataset import generate
+
+    workers = _TwoWorkers()
+    monkeypatch.setattr(generate, "_make_executor", lambda ray, spec: workers)
+    _patch_pools(monkeypatch, lambda j, r: _injected(j) if j.id == fails and j.attempt == 1 else r)
+    (rep,) = generate_dataset(micro(), out=str(tmp_path / "s"))
+    assert rep.pending == 0 and not rep.failed and rep.written == 2 and rep.retried == 1
+    # The template and fits with one sequence in the first pool, the other sequence in the second.
+    first = ["template", "zero", "b1p2", "walk_fast__b1p2"]
+    if fails == "template":
+        assert workers.log == [("start", 0, first), ("start", 1, ["walk_fast__zero"]), ("end", 0),
+                               ("start", 3, ["template"]), ("end", 1), ("end", 3), ("start", 6, ["zero", "b1p2"]),
+                               ("end", 6)]
+        assert [t["round"] for t in rep.tasks] == [1, 1, 2, 3]
+    else:
+        assert workers.log == [("start", 0, first), ("start", 1, ["walk_fast__zero"]), ("end", 0),
+                               ("start", 3, ["walk_fast__b1p2"]), ("end", 1), ("end", 3)]
+        assert [t["round"] for t in rep.tasks] == [1, 1, 2]
+    assert open_dataset(tmp_path / "s").manifest["failed"] == {} and check_dataset(tmp_path / "s").passed
+
+
 def test_a_task_whose_nodes_are_all_committed_reports_like_any(tmp_path):
     """A pool task run again after its jobs were all committed (a Ray task retried after its worker
     died past its last commit) simulates nothing and returns every field a task returns."""

@@ -1,10 +1,10 @@
 """Ray execution of dataset generation (``simgen dataset generate --ray ADDRESS|local``).
 
-Each round of jobs (:mod:`simgen.dataset.generate`) is dealt into one task per GPU (or per CPU);
-each task runs :func:`simgen.dataset.execute.run_pool_task` in a Ray worker: one simulation pool
-on its own device (Ray's GPU resource), kept full until its jobs run out, writing each node
-straight into the store as its job ends; it returns the outcomes, and the driver alone rewrites the
-manifest. The store must
+The first jobs (:mod:`simgen.dataset.generate`) are dealt into one task per GPU (or per CPU),
+and each retry goes to the next free one as soon as its failure is known. Each task runs
+:func:`simgen.dataset.execute.run_pool_task` in a Ray worker: one simulation pool on its own device
+(Ray's GPU resource), kept full until its jobs run out, writing each node straight into the store
+as its job ends; it returns the outcomes, and the driver alone rewrites the manifest. The store must
 be reachable from every worker under the same name: a local folder for ``--ray local`` or a
 single machine, a shared filesystem or an fsspec URL (s3://, gs://, ...) for a cluster.
 
@@ -44,7 +44,8 @@ def _run_pool_task(task, deadline):
 
 
 class RayExecutor:
-    """Runs the tasks of a round as Ray tasks, one per GPU (or per CPU) at a time."""
+    """Runs pool tasks as Ray tasks, one per GPU (or per CPU) at a time: the driver starts at most
+    ``parallel`` and asks for the next to end."""
 
     def __init__(self, address: str, spec) -> None:
         try:
@@ -77,25 +78,27 @@ class RayExecutor:
         else:
             self.parallel, self.device, opts = cpus, "cpu", {"num_cpus": 1}
         self._remote = ray.remote(max_retries=MAX_TASK_RETRIES, retry_exceptions=True, **opts)(_run_pool_task)
+        self._pending: dict = {}   # ObjectRef -> (task, on_outcome)
 
-    def run(self, tasks, on_outcome, progress, budget_s) -> list:
-        """Run ``tasks`` at once; on_outcome(outcome) for each job as its task's result comes back;
-        progress(cloth_frames) once per task. Returns each task's result, in order."""
+    def start(self, task, budget_s, on_outcome, progress):
+        """Submit one pool task (a Ray task on a GPU, or a CPU, of its own); returns its handle.
+        on_outcome(outcome) for each of its jobs once it has ended (:meth:`next`); progress is
+        not called (a Ray task reports when it ends)."""
         import time
 
         deadline = None if budget_s is None else time.time() + budget_s
-        pending = {self._remote.remote(task, deadline): i for i, task in enumerate(tasks)}
-        results: list = [None] * len(tasks)
-        frames = 0
-        while pending:
-            ready, _ = self.ray.wait(list(pending), num_returns=1)
-            i = pending.pop(ready[0])
-            results[i] = self._get(ready[0], tasks[i])
-            for o in results[i]["outcomes"]:
-                on_outcome(o)
-            frames += results[i]["cloth_frames"]
-            progress(frames)
-        return results
+        ref = self._remote.remote(task, deadline)
+        self._pending[ref] = (task, on_outcome)
+        return ref
+
+    def next(self):
+        """(handle, result) of the next task to end, its outcomes handed to its on_outcome first."""
+        ready, _ = self.ray.wait(list(self._pending), num_returns=1)
+        task, on_outcome = self._pending.pop(ready[0])
+        result = self._get(ready[0], task)
+        for o in result["outcomes"]:
+            on_outcome(o)
+        return ready[0], result
 
     def _get(self, ref, task) -> dict:
         ray = self.ray

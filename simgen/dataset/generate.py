@@ -15,9 +15,10 @@ One store per garment (docs/architecture.md, "Dataset store"). For each store th
    pool); a failed job (diverged, or a sequence with a strain outlier:
    ``execution.retry_strain_outliers``) runs again with the substep halved, up to ``max_attempts``:
    in the same pool (a slot at twice the substeps beside the others) while jobs still wait there,
-   else in a later pool with the others of its attempt; a failed template relaxation runs again
-   alone in a later pool first, since the fits need it, and fits that ended before it was written
-   run again after it.
+   else in a later pool, with the other failures of its attempt that are known by then, started
+   as soon as a worker is free (on Ray, while the other pools still step); a failed template
+   relaxation runs again alone first, since the fits need it, and fits that ended before it was
+   written run again after it.
 
 ``max_sequences`` and ``time_budget`` make a run do a part of the plan (the store stays resumable:
 the next run continues); under a time budget a pool starts no job that it would not finish in time,
@@ -29,6 +30,7 @@ from __future__ import annotations
 import hashlib
 import json
 import time
+from collections import deque
 from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
@@ -198,17 +200,20 @@ def _plan_order(jobs: list[Job]) -> list[Job]:
     return sorted(jobs, key=lambda j: (rank[j.kind], -j.frames if j.kind == "sequence" else 0))
 
 
-def _next_round(queue: list[Job], first: bool) -> list[Job]:
+def _next_jobs(queue: list[Job], first: bool, template_running: bool) -> list[Job]:
     """The jobs of the next pool, taken out of ``queue``: at first every job of the lowest attempt;
     a template retry alone (later, or first when a rerun resumes it at a later attempt than the
     rest: the fits waiting for it need it written), else every job of the lowest attempt (a pool
-    shares its substep)."""
-    low = min(j.attempt for j in queue)
-    template = next((j for j in queue if j.kind == "template"), None)
+    shares its substep). While a template pool runs, the fits wait (none is taken)."""
+    candidates = [j for j in queue if not (template_running and j.kind == "fit")]
+    if not candidates:
+        return []
+    low = min(j.attempt for j in candidates)
+    template = next((j for j in candidates if j.kind == "template"), None)
     if template is not None and (not first or template.attempt > low):
         chosen = [template]
     else:
-        chosen = [j for j in queue if j.attempt == low]
+        chosen = [j for j in candidates if j.attempt == low]
     for j in chosen:
         queue.remove(j)
     return _plan_order(chosen)
@@ -227,20 +232,27 @@ def _split(jobs: list[Job], parts: int) -> list[list[Job]]:
 
 
 class _LocalExecutor:
-    """Runs each task in this process, one after another (:func:`run_pool_task`); the outcomes
-    reach the driver as the jobs' writes end."""
+    """Runs each task in this process, one at a time, when the driver asks for the next to end
+    (:func:`run_pool_task`); the outcomes reach the driver as the jobs' writes end."""
 
     parallel = 1
 
-    def run(self, tasks, on_outcome, progress, budget_s):
-        results = []
-        for task in tasks:
-            deadline = None if budget_s is None else time.time() + budget_s
-            results.append(run_pool_task(task, progress=progress, on_outcome=on_outcome, deadline=deadline))
-        return results
+    def __init__(self) -> None:
+        self._waiting: deque = deque()
+        self._count = 0
+
+    def start(self, task, budget_s, on_outcome, progress) -> int:
+        self._count += 1
+        self._waiting.append((self._count, task, budget_s, on_outcome, progress))
+        return self._count
+
+    def next(self) -> tuple[int, dict]:
+        handle, task, budget_s, on_outcome, progress = self._waiting.popleft()
+        deadline = None if budget_s is None else time.time() + budget_s
+        return handle, run_pool_task(task, progress=progress, on_outcome=on_outcome, deadline=deadline)
 
     def close(self) -> None:
-        pass
+        self._waiting.clear()
 
 
 def generate_dataset(spec, out: str | None = None, *, ray: str | None = None, max_sequences: int | None = None,
@@ -348,56 +360,78 @@ class _Driver:
             self.store.save_manifest()   # what was recorded since the last save, also on an error
 
     def _rounds(self, pending: list[Job], time_budget: float | None, t_start: float) -> None:
+        """Keep every worker busy: the first jobs dealt into one pool per worker, and each retry in a
+        pool of its own as soon as a worker is free (not after the other pools: a failure found
+        as one pool drains runs while the others still step)."""
         spec, report = self.spec, self.report
         queue = list(pending)
         self.total = job_cloth_frames(spec, queue)
         self.show(0)
         t0 = time.perf_counter()
-        first, rounds = True, 0
-        while queue:
-            left = None if time_budget is None else time_budget - (time.perf_counter() - t_start)
-            if left is not None and left <= 0:
-                report.stopped = f"time budget of {time_budget:g} s reached"
+        running: dict = {}     # executor handle -> (round, task)
+        first, rounds, error = True, 0, None
+        while queue or running:
+            if report.stopped is None and error is None:
+                rounds, first = self._launch(queue, running, rounds, first, time_budget, t_start)
+            if not running:
                 break
-            jobs = _next_round(queue, first)
-            first, rounds = False, rounds + 1
-            self.by_key.update({j.key: j for j in jobs})
-            attempt = jobs[0].attempt
-            tasks = [BatchTask(location=self.store.loc.root if self.store.loc.is_local else self.store.loc.url(),
-                               spec=spec, garment=self.garment.name, jobs=part, attempt=attempt,
-                               device=self.device, body_hash=self.body.hash)
-                     for part in _split(jobs, self.executor.parallel)]
-            base = self.done
-            results = self.executor.run(tasks, self.record, lambda n: self.show(base + n), left)
-            not_done = [j for r in results for j in r["not_done"]]
-            for r in results:
-                report.tasks.append(self._task_entry(rounds, r))
-                report.slots = max(report.slots, r["slots"])
-                self.done += r["cloth_frames"]
-                report.cloth_frames += r["cloth_frames"]
-                report.simulate_wall += r["wall"]
-                report.step_wall += r["step_s"]
-                report.write_wall += r["write_s"]
-                report.write_wait += r["write_wait"]
-                if attempt > 1:
-                    report.retry_cloth_frames += r["cloth_frames"]
-                    report.retry_simulate_wall += r["wall"]
-                else:
-                    report.retry_cloth_frames += r["retry_cloth_frames"]
-                    report.retry_simulate_wall += r["retry_wall"]
+            handle, r = self.executor.next()
+            round_, task = running.pop(handle)
+            self._account(round_, task, r)
             report.wall = time.perf_counter() - t0
-            self.total -= job_cloth_frames(spec, not_done) - sum(r["abandoned_cloth_frames"] for r in results)
             self.store.save_manifest()
             self.show(self.done)
-            error = next((r["error"] for r in results if r["error"]), None)
-            if error:
-                raise StoreWriteError(error)
-            if not_done:
+            error = error or r["error"]
+            if r["not_done"] and report.stopped is None:
                 report.stopped = f"time budget of {time_budget:g} s reached"
-                break
             queue += self.retry
             self.total += job_cloth_frames(spec, self.retry)
             self.retry = []
+        if error:
+            raise StoreWriteError(error)
+
+    def _launch(self, queue, running, rounds, first, time_budget, t_start) -> tuple[int, bool]:
+        """Start pools on the free workers for what ``queue`` holds (:func:`_next_jobs`); returns
+        the rounds launched so far and whether the first is still to come."""
+        free = self.executor.parallel - len(running)
+        while queue and free > 0:
+            left = None if time_budget is None else time_budget - (time.perf_counter() - t_start)
+            if left is not None and left <= 0:
+                self.report.stopped = f"time budget of {time_budget:g} s reached"
+                break
+            template_running = any(j.kind == "template" for _, t in running.values() for j in t.jobs)
+            jobs = _next_jobs(queue, first, template_running)
+            if not jobs:
+                break
+            first, rounds = False, rounds + 1
+            self.by_key.update({j.key: j for j in jobs})
+            loc = self.store.loc.root if self.store.loc.is_local else self.store.loc.url()
+            for part in _split(jobs, free):
+                task = BatchTask(location=loc, spec=self.spec, garment=self.garment.name, jobs=part,
+                                 attempt=jobs[0].attempt, device=self.device, body_hash=self.body.hash)
+                handle = self.executor.start(task, left, self.record, lambda n: self.show(self.done + n))
+                running[handle] = (rounds, task)
+                free -= 1
+        return rounds, first
+
+    def _account(self, round_: int, task: BatchTask, r: dict) -> None:
+        """Add one ended task to the report and the cloth-frame totals."""
+        report = self.report
+        report.tasks.append(self._task_entry(round_, r))
+        report.slots = max(report.slots, r["slots"])
+        self.done += r["cloth_frames"]
+        report.cloth_frames += r["cloth_frames"]
+        report.simulate_wall += r["wall"]
+        report.step_wall += r["step_s"]
+        report.write_wall += r["write_s"]
+        report.write_wait += r["write_wait"]
+        if task.attempt > 1:
+            report.retry_cloth_frames += r["cloth_frames"]
+            report.retry_simulate_wall += r["wall"]
+        else:
+            report.retry_cloth_frames += r["retry_cloth_frames"]
+            report.retry_simulate_wall += r["retry_wall"]
+        self.total -= job_cloth_frames(self.spec, r["not_done"]) - r["abandoned_cloth_frames"]
 
     def _task_entry(self, round_: int, r: dict) -> dict:
         since = {k: v - self.clock_start for k, v in r["clock"].items()}
