@@ -499,8 +499,9 @@ def test_a_retry_joins_its_pool_while_jobs_wait_there(tmp_path, monkeypatch):
     (rep,) = generate_dataset(spec, out=str(tmp_path / "s"))
     assert rep.pending == 0 and not rep.failed and rep.written == 2
     s = spec.substeps
-    assert _runs(calls) == [[f"template@{s}", f"zero@{s}", f"b1p2@{s}", f"walk_fast__zero@{s}", f"walk_fast__b1p2@{s}",
-                             f"walk_fast__zero@{2 * s}"]]
+    # The retry takes the next free slot, before the job still waiting (the longer work goes first).
+    assert _runs(calls) == [[f"template@{s}", f"zero@{s}", f"b1p2@{s}", f"walk_fast__zero@{s}",
+                             f"walk_fast__zero@{2 * s}", f"walk_fast__b1p2@{s}"]]
     frames = spec.protocol_frames() + spec.max_frames - 1
     assert rep.retried == 1 and rep.retry_cloth_frames == frames and rep.retry_simulate_wall > 0
     ds = open_dataset(tmp_path / "s")
@@ -511,19 +512,30 @@ def test_a_retry_joins_its_pool_while_jobs_wait_there(tmp_path, monkeypatch):
 
 class _TwoWorkers:
     """An executor with two workers that runs its pool tasks in this process, the oldest first when
-    the driver asks for the next to end, and logs each start (with its jobs) and end."""
+    the driver asks for the next to end, and logs each start (with its jobs) and end; with
+    ``share`` the tasks of a round share a :class:`JobFeed`, as on Ray."""
 
     parallel = 2
 
-    def __init__(self) -> None:
+    def __init__(self, share: bool = False) -> None:
         self.waiting: list = []
         self.log: list = []
+        self.share = share
 
-    def start(self, task, budget_s, on_outcome, progress):
-        handle = len(self.log)
-        self.log.append(("start", handle, [j.id for j in task.jobs]))
-        self.waiting.append((handle, task, on_outcome))
-        return handle
+    def start(self, tasks, budget_s, on_outcome, progress):
+        from dataclasses import replace
+
+        from simgen.dataset.execute import JobFeed
+
+        if self.share and len(tasks) > 1:
+            feed = JobFeed({t.name: t.jobs for t in tasks})
+            tasks = [replace(t, feed=feed) for t in tasks]
+        handles = []
+        for task in tasks:
+            handles.append(len(self.log))
+            self.log.append(("start", handles[-1], [j.id for j in task.jobs]))
+            self.waiting.append((handles[-1], task, on_outcome))
+        return handles
 
     def next(self):
         from simgen.dataset.execute import run_pool_task
@@ -535,6 +547,25 @@ class _TwoWorkers:
 
     def close(self) -> None:
         pass
+
+
+def test_pools_that_share_a_feed_take_each_others_jobs(tmp_path):
+    """Two pool tasks sharing their round's jobs (a JobFeed, as on Ray): the task run first takes
+    its own share, then, as its slots free up, the other's job; the other task finds nothing left
+    and builds no pool. Every node is written once and the store passes the check."""
+    from simgen.dataset import generate
+
+    workers = _TwoWorkers(share=True)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(generate, "_make_executor", lambda ray, spec: workers)
+        (rep,) = generate_dataset(micro(batch_size=2), out=str(tmp_path / "s"))
+    assert rep.pending == 0 and not rep.failed and rep.written == 2 and rep.retried == 0
+    assert workers.log == [("start", 0, ["template", "zero", "b1p2", "walk_fast__b1p2"]),
+                           ("start", 1, ["walk_fast__zero"]), ("end", 0), ("end", 1)]
+    first, second = rep.tasks
+    assert first["slots"] == 2 and second["slots"] == 0 and second["cloth_frames"] == 0
+    assert first["cloth_frames"] == rep.cloth_frames == 5 * micro().protocol_frames()
+    assert check_dataset(tmp_path / "s").passed
 
 
 @pytest.mark.parametrize("fails", ["walk_fast__b1p2", "template"])
@@ -561,6 +592,35 @@ def test_a_retry_starts_on_the_first_free_worker(tmp_path, monkeypatch, fails):
                                ("start", 3, ["walk_fast__b1p2"]), ("end", 1), ("end", 3)]
         assert [t["round"] for t in rep.tasks] == [1, 1, 2]
     assert open_dataset(tmp_path / "s").manifest["failed"] == {} and check_dataset(tmp_path / "s").passed
+
+
+def _job(name: str, frames: int):
+    from simgen.dataset.execute import Job, rest_clip
+    from simgen.motion.clip import MotionClip
+
+    c = rest_clip(30.0)
+    clip = MotionClip(name, 30.0, np.zeros((frames, 24, 3)), np.zeros((frames, 3)), dict(c.meta))
+    return Job("sequence", name, clip, np.zeros(10))
+
+
+def test_job_feed_hands_out_own_jobs_then_steals_the_shortest_of_the_richest():
+    """A task takes its own share first, in order; then the shortest job of the task with the most
+    frames left; a task that starts again gets back what its earlier run took; rest() hands back
+    a share's untaken jobs."""
+    from simgen.dataset.execute import JobFeed
+
+    feed = JobFeed({"a": [_job("a1", 50), _job("a2", 10)],
+                    "b": [_job("b1", 40), _job("b2", 30), _job("b3", 5)], "c": [_job("c1", 60)]})
+    for name in "abc":
+        feed.start(name)
+    ids = lambda jobs: [j.id for j in jobs]   # noqa: E731
+    assert ids(feed.take("a", 1)) == ["a1"] and feed.left() == 5
+    assert ids(feed.take("a", 2)) == ["a2", "b3"]       # b has 75 frames left, c 60: b's shortest
+    assert ids(feed.take("a", 1)) == ["b2"]             # b has 70 frames left, c 60
+    assert ids(feed.take("a", 1)) == ["c1"]             # c 60, b 40
+    feed.start("a")                                     # a's run died: what it took comes back first
+    assert ids(feed.take("a", 10)) == ["a1", "a2", "b3", "b2", "c1", "b1"] and feed.left() == 0
+    assert feed.take("b", 3) == [] and feed.rest("b") == []
 
 
 def test_a_task_whose_nodes_are_all_committed_reports_like_any(tmp_path):

@@ -43,6 +43,33 @@ def _run_pool_task(task, deadline):
     return result
 
 
+class _FeedProxy:
+    """A :class:`simgen.dataset.execute.JobFeed` actor as the pool task sees a feed (blocking calls)."""
+
+    def __init__(self, actor) -> None:
+        self.actor = actor
+
+    def start(self, name: str) -> None:
+        import ray
+
+        ray.get(self.actor.start.remote(name))
+
+    def take(self, name: str, n: int) -> list:
+        import ray
+
+        return ray.get(self.actor.take.remote(name, n))
+
+    def left(self) -> int:
+        import ray
+
+        return ray.get(self.actor.left.remote())
+
+    def rest(self, name: str) -> list:
+        import ray
+
+        return ray.get(self.actor.rest.remote(name))
+
+
 class RayExecutor:
     """Runs pool tasks as Ray tasks, one per GPU (or per CPU) at a time: the driver starts at most
     ``parallel`` and asks for the next to end."""
@@ -80,16 +107,26 @@ class RayExecutor:
         self._remote = ray.remote(max_retries=MAX_TASK_RETRIES, retry_exceptions=True, **opts)(_run_pool_task)
         self._pending: dict = {}   # ObjectRef -> (task, on_outcome)
 
-    def start(self, task, budget_s, on_outcome, progress):
-        """Submit one pool task (a Ray task on a GPU, or a CPU, of its own); returns its handle.
-        on_outcome(outcome) for each of its jobs once it has ended (:meth:`next`); progress is
-        not called (a Ray task reports when it ends)."""
+    def start(self, tasks, budget_s, on_outcome, progress) -> list:
+        """Submit the pool tasks of one round, each a Ray task on a GPU (or a CPU) of its own,
+        sharing one :class:`JobFeed` actor when there are several (a pool that ends early takes
+        the others' jobs); their handles. on_outcome(outcome) for each job once its task has ended
+        (:meth:`next`); progress is not called (a Ray task reports when it ends)."""
         import time
+        from dataclasses import replace
+
+        from simgen.dataset.execute import JobFeed
 
         deadline = None if budget_s is None else time.time() + budget_s
-        ref = self._remote.remote(task, deadline)
-        self._pending[ref] = (task, on_outcome)
-        return ref
+        if len(tasks) > 1:
+            actor = self.ray.remote(num_cpus=0)(JobFeed).remote({t.name: t.jobs for t in tasks})
+            tasks = [replace(t, feed=_FeedProxy(actor)) for t in tasks]
+        refs = []
+        for task in tasks:
+            ref = self._remote.remote(task, deadline)
+            self._pending[ref] = (task, on_outcome)
+            refs.append(ref)
+        return refs
 
     def next(self):
         """(handle, result) of the next task to end, its outcomes handed to its on_outcome first."""

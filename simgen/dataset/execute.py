@@ -12,7 +12,8 @@ takes no initial state.
 :func:`run_pool_task` runs in the driver (local execution) or in a Ray task: it keeps one
 :class:`simgen.sim.SimulationPool` (:func:`pool_slots`) full with the task's jobs (continuous
 batching: a slot whose job ended takes the next one at the next frame, each job with its own start
-protocol) and hands each job that ends to a :class:`NodeWriter` (ground truth, statistics, Zarr,
+protocol; on Ray the pools of a round share their jobs, :class:`JobFeed`) and hands each job that
+ends to a :class:`NodeWriter` (ground truth, statistics, Zarr,
 commit), in background threads behind the simulation with ``execution.overlap_writes``. A job
 that diverges fails while the others are written, and runs again with the substep halved (attempt
 k runs substeps * 2^(k-1)) until ``execution.max_attempts``: in the same pool (the job's
@@ -38,7 +39,7 @@ from simgen._warp_log import quiet_warp
 from simgen.dataset.storage import Location, StoreWriteError
 from simgen.errors import InputError
 
-__all__ = ["Job", "BatchTask", "NodeWriter", "run_pool_task", "pool_slots", "rest_clip", "job_cloth_frames"]
+__all__ = ["Job", "BatchTask", "JobFeed", "NodeWriter", "run_pool_task", "pool_slots", "rest_clip", "job_cloth_frames"]
 
 
 @dataclass
@@ -72,7 +73,9 @@ class Job:
 @dataclass
 class BatchTask:
     """What :func:`run_pool_task` needs, picklable for Ray: store location, spec, garment name, jobs
-    (all of one attempt), attempt, the device (None: the spec's) and the body's hash."""
+    (all of one attempt), attempt, the device (None: the spec's) and the body's hash; with a
+    ``feed`` (:class:`JobFeed` or a proxy of one), ``jobs`` is the task's share, which sizes its pool,
+    and the jobs it runs come from the feed under ``name``."""
 
     location: str
     spec: object
@@ -81,6 +84,8 @@ class BatchTask:
     attempt: int = 1
     device: str | None = None
     body_hash: str | None = None
+    feed: object = None      # a JobFeed shared with the other tasks of its round (None: its own jobs)
+    name: str = "task"       # its name in the feed
 
     @property
     def substeps_factor(self) -> int:
@@ -97,6 +102,53 @@ def rest_clip(fps: float, name: str = "rest"):
 def job_cloth_frames(spec, jobs) -> int:
     """Cloth-frames the jobs simulate: (protocol + clip frames) per job; frame 0 of a clip takes no step."""
     return sum(spec.protocol_frames() + j.frames - 1 for j in jobs)
+
+
+class JobFeed:
+    """The jobs of the pool tasks of one round, handed out as their pools' slots free up: a task
+    takes its own share first, then the shortest job left of the task with the most cloth-frames
+    left (work stealing), so that the pools of a round end together however fast each one's GPU
+    turns out to be. A task that starts again (Ray re-runs it after its worker died) first gets
+    back the jobs its earlier run took; their nodes may be committed, which it checks.
+
+    parts: {task name: [Job, ...]}, each share in the order it is to run (longest first).
+    """
+
+    def __init__(self, parts: dict) -> None:
+        self.queues = {name: deque(jobs) for name, jobs in parts.items()}
+        self.taken: dict = {name: [] for name in parts}
+        self.started: set = set()
+
+    def start(self, name: str) -> None:
+        if name in self.started:
+            self.queues[name].extendleft(reversed(self.taken[name]))
+            self.taken[name] = []
+        self.started.add(name)
+
+    def take(self, name: str, n: int) -> list:
+        """Up to ``n`` jobs for task ``name`` ([] when none is left anywhere)."""
+        out = []
+        while len(out) < n:
+            own = self.queues[name]
+            if own:
+                out.append(own.popleft())
+                continue
+            richest = max(self.queues.values(), key=lambda q: sum(j.frames for j in q))
+            if not richest:
+                break
+            out.append(richest.pop())
+        self.taken[name] += out
+        return out
+
+    def left(self) -> int:
+        """Jobs not taken yet, of all tasks."""
+        return sum(len(q) for q in self.queues.values())
+
+    def rest(self, name: str) -> list:
+        """Take what is left of task ``name``'s own share (a task that stops early hands it back)."""
+        out = list(self.queues[name])
+        self.queues[name].clear()
+        return out
 
 
 #: Most slots a pool takes on a GPU; a CPU pool's slots without execution.batch_size.
@@ -378,9 +430,10 @@ class _Writes:
 
 
 def run_pool_task(task: BatchTask, *, progress=None, on_outcome=None, deadline: float | None = None) -> dict:
-    """Simulate a task's jobs in one :class:`simgen.sim.SimulationPool` (:func:`pool_slots` slots)
-    (continuous batching: a slot whose job ended takes the next at the next frame) and write each
-    job as it ends (behind the simulation with ``spec.overlap_writes``).
+    """Simulate a task's jobs in one :class:`simgen.sim.SimulationPool` (:func:`pool_slots` slots, at
+    most the task's share) (continuous batching: a slot whose job ended takes the next at the next
+    frame, from the task's :class:`JobFeed`, which may hand it other tasks' jobs once its own ran
+    out) and write each job as it ends (behind the simulation with ``spec.overlap_writes``).
 
     progress(cloth_frames_done) after every pool frame; on_outcome(outcome) as each job's write ends
     (in this thread); deadline: a ``time.time()`` value (a wall clock, so that a Ray worker that
@@ -412,27 +465,35 @@ def run_pool_task(task: BatchTask, *, progress=None, on_outcome=None, deadline: 
     if task.device is not None:
         spec = replace(spec, device=task.device)
     config = spec.solver_config(substeps_factor=task.substeps_factor)
-    outcomes, todo = [], []
-    for job in task.jobs:
-        commit = loc.committed(_node_rel(job))
-        if commit is not None:
-            outcomes.append({**_outcome_base(job), "ok": True, "checksum": commit["checksum"], "reused": True})
-            if on_outcome is not None:
-                on_outcome(outcomes[-1])
-        else:
-            todo.append(job)
+    outcomes: list = []
+
+    def reused(job, commit) -> None:
+        outcomes.append({**_outcome_base(job), "ok": True, "checksum": commit["checksum"], "reused": True})
+        if on_outcome is not None:
+            on_outcome(outcomes[-1])
+
+    feed = task.feed if task.feed is not None else JobFeed({task.name: list(task.jobs)})
+    feed.start(task.name)
     report = {"outcomes": outcomes, "error": None, "not_done": [], "abandoned_cloth_frames": 0, "slots": 0,
               "wall": 0.0, "cloth_frames": 0, "step_s": 0.0, "write_s": 0.0, "write_wait": 0.0,
               "clock": clock, "gpu_memory_high_bytes": None, "retry_cloth_frames": 0, "retry_wall": 0.0}
-    if not todo:
+    first = _take(feed, task.name, min(pool_slots(spec, config.device, garment), max(len(task.jobs), 1)), loc, reused)
+    if not first:
         clock["ready"] = clock["end"] = time.time()
         return report
-    slots = min(pool_slots(spec, config.device, garment), len(todo))
+    slots = len(first)
     pool = SimulationPool(garment, body, slots, config, fps=spec.fps)
-    retries = _PoolRetries(spec, task.attempt, pool, on_outcome)
-    for job in todo:
+    retries = _PoolRetries(spec, task.attempt, pool, on_outcome, lambda: feed.left() > 0)
+    for job in first:
         retries.submit(job)
     writes = _Writes(NodeWriter(spec, config, garment, body, loc, slots), spec.overlap_writes, retries.outcome)
+
+    def top_up() -> None:
+        # A slot takes a job from the feed only when it frees up (the others' pools may take the rest).
+        free = pool.num_slots - pool.busy - pool.queued
+        if free > 0 and not pool.refused:
+            for job in _take(feed, task.name, free, loc, reused):
+                retries.submit(job)
 
     def accept(job, frames) -> bool:
         frame_s = pool.recent_frame_time()
@@ -446,8 +507,10 @@ def run_pool_task(task: BatchTask, *, progress=None, on_outcome=None, deadline: 
     clock["ready"] = time.time()
     try:
         while True:
+            top_up()
             if not (pool.busy or pool.queued):
                 writes.collect(wait=True)     # the last writes may send failed jobs back into the pool
+                top_up()
                 if writes.error is not None or not (pool.busy or pool.queued):
                     break
             for job, res in pool.step():
@@ -469,7 +532,7 @@ def run_pool_task(task: BatchTask, *, progress=None, on_outcome=None, deadline: 
         pool.refused += pool.drop_queue()   # retries of the writes that ended after the last frame
         pool.accept = None   # the closure holds the pool: free its device memory with the pool
         clock["end"] = time.time()
-    report.update(not_done=pool.refused + abandoned,
+    report.update(not_done=pool.refused + abandoned + feed.rest(task.name),
                   abandoned_cloth_frames=sum(job_cloth_frames(spec, [j]) for j in abandoned), slots=slots,
                   outcomes=outcomes + writes.outcomes, error=writes.error, wall=pool.wall,
                   cloth_frames=pool.cloth_frames, step_s=pool.step_time, write_s=writes.write_s,
@@ -478,17 +541,36 @@ def run_pool_task(task: BatchTask, *, progress=None, on_outcome=None, deadline: 
     return report
 
 
+def _take(feed, name: str, n: int, loc: Location, reused) -> list:
+    """Up to ``n`` jobs from ``feed`` whose node is not committed yet; reused(job, commit) for each
+    that is (an earlier run of the task committed it)."""
+    out: list = []
+    while len(out) < n:
+        batch = feed.take(name, n - len(out))
+        if not batch:
+            break
+        for job in batch:
+            commit = loc.committed(_node_rel(job))
+            if commit is None:
+                out.append(job)
+            else:
+                reused(job, commit)
+    return out
+
+
 class _PoolRetries:
     """Sends a task's failed jobs back into its pool at twice the substeps while other jobs still
-    wait for a slot there (module doc).
+    wait for a slot there (queued in the pool or left in its feed: module doc).
 
     spec: the store's spec; attempt: the task's (its pool's substeps); pool: the SimulationPool;
-    on_outcome: the caller's, handed every outcome after this has seen it. ``cloth_frames`` and
+    on_outcome: the caller's, handed every outcome after this has seen it; fed() -> bool: jobs are
+    left in the task's feed. ``cloth_frames`` and
     ``wall`` [s]: the frames of the later attempts that ended, and their share of the pool's time.
     """
 
-    def __init__(self, spec, attempt: int, pool, on_outcome) -> None:
+    def __init__(self, spec, attempt: int, pool, on_outcome, fed) -> None:
         self.spec, self.attempt, self.pool, self.on_outcome = spec, int(attempt), pool, on_outcome
+        self.fed = fed           # () -> bool: jobs are left in the task's feed
         self.jobs: dict = {}     # key -> the Job of its latest attempt
         self.cloth_frames = 0
         self.wall = 0.0
@@ -511,7 +593,7 @@ class _PoolRetries:
         # retry started once the queue ran dry would stretch the pool's tail at the full pool's
         # price; the driver runs those in a later, smaller pool.
         again = (not o["ok"] and not o.get("waiting") and job.kind != "template"
-                 and job.attempt < self.spec.max_attempts and self.pool.queued > 0)
+                 and job.attempt < self.spec.max_attempts and (self.pool.queued > 0 or self.fed()))
         if again:
             o["retry"] = "pool"
         if self.on_outcome is not None:

@@ -241,10 +241,14 @@ class _LocalExecutor:
         self._waiting: deque = deque()
         self._count = 0
 
-    def start(self, task, budget_s, on_outcome, progress) -> int:
-        self._count += 1
-        self._waiting.append((self._count, task, budget_s, on_outcome, progress))
-        return self._count
+    def start(self, tasks, budget_s, on_outcome, progress) -> list[int]:
+        """Queue the pool tasks of one round (each runs its own jobs); their handles."""
+        handles = []
+        for task in tasks:
+            self._count += 1
+            self._waiting.append((self._count, task, budget_s, on_outcome, progress))
+            handles.append(self._count)
+        return handles
 
     def next(self) -> tuple[int, dict]:
         handle, task, budget_s, on_outcome, progress = self._waiting.popleft()
@@ -406,12 +410,12 @@ class _Driver:
             first, rounds = False, rounds + 1
             self.by_key.update({j.key: j for j in jobs})
             loc = self.store.loc.root if self.store.loc.is_local else self.store.loc.url()
-            for part in _split(jobs, free):
-                task = BatchTask(location=loc, spec=self.spec, garment=self.garment.name, jobs=part,
-                                 attempt=jobs[0].attempt, device=self.device, body_hash=self.body.hash)
-                handle = self.executor.start(task, left, self.record, lambda n: self.show(self.done + n))
-                running[handle] = (rounds, task)
-                free -= 1
+            tasks = [BatchTask(location=loc, spec=self.spec, garment=self.garment.name, jobs=part,
+                               attempt=jobs[0].attempt, device=self.device, body_hash=self.body.hash,
+                               name=f"{rounds}.{i}") for i, part in enumerate(_split(jobs, free))]
+            handles = self.executor.start(tasks, left, self.record, lambda n: self.show(self.done + n))
+            running.update({h: (rounds, t) for h, t in zip(handles, tasks)})
+            free -= len(tasks)
         return rounds, first
 
     def _account(self, round_: int, task: BatchTask, r: dict) -> None:
