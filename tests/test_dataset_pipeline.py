@@ -141,6 +141,30 @@ def test_background_write_failure_is_store_write_error_and_resumable(tmp_path, m
     assert check_dataset(out).passed
 
 
+def test_write_failure_with_jobs_still_waiting_is_store_write_error(tmp_path, monkeypatch):
+    """A fit's write fails while sequences still wait for the pool's one slot: StoreWriteError (the
+    waiting jobs are left for the next run, not taken for a spent time budget), and the same call
+    then completes the store."""
+    out = tmp_path / "store"
+    spec = micro(batch_size=1)
+    original = Location._write_group
+
+    def failing(self, target, arrays, attrs, chunks, commit):
+        if "zero" in target and "walk_fast" not in target:
+            raise OSError(28, "No space left on device")
+        return original(self, target, arrays, attrs, chunks, commit)
+
+    monkeypatch.setattr(Location, "_write_group", failing)
+    with pytest.raises(StoreWriteError, match="No space left on device"):
+        generate_dataset(spec, out=str(out))
+    m = json.loads((out / "manifest.json").read_text())
+    assert m["template"] and "zero" not in m["fits"] and m["sequences"] == {}
+    monkeypatch.setattr(Location, "_write_group", original)
+    (rep,) = generate_dataset(spec, out=str(out))
+    assert rep.written == 2 and rep.pending == 0 and not rep.failed
+    assert check_dataset(out).passed
+
+
 def test_simulation_error_is_raised_after_the_jobs_being_written(tmp_path, monkeypatch):
     """An exception while the last sequence simulates (the one before it being written) reaches the
     caller once that write is recorded; the store is consistent and the same call resumes it."""

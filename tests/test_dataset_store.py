@@ -491,8 +491,8 @@ def test_diverged_job_is_retried_with_smaller_steps(tmp_path, monkeypatch):
 
 def test_a_retry_joins_its_pool_while_jobs_wait_there(tmp_path, monkeypatch):
     """A job that fails while other jobs still wait for a slot runs again in the same pool, in a slot
-    at twice the substeps (a job at the pool's substeps beside it), and is written like a retry run
-    alone: attempts 2, twice the substeps, and the store passes the check."""
+    at twice the substeps (the pool's next free slot, before the job still waiting), and is written
+    like a retry run alone: attempts 2, twice the substeps, and the store passes the check."""
     calls = _patch_pools(monkeypatch, lambda j, r: _injected(j) if j.id == "walk_fast__zero" and j.attempt == 1
                          else r)
     spec = micro(batch_size=1, overlap_writes=False)       # one slot: walk_fast__b1p2 waits when it fails
@@ -605,22 +605,29 @@ def _job(name: str, frames: int):
 
 def test_job_feed_hands_out_own_jobs_then_steals_the_shortest_of_the_richest():
     """A task takes its own share first, in order; then the shortest job of the task with the most
-    frames left; a task that starts again gets back what its earlier run took; rest() hands back
-    a share's untaken jobs."""
+    frames left; a task that starts again gets back what its earlier run took and what it handed
+    back, marked to be looked up in the store; rest() hands back a share's untaken jobs."""
     from simgen.dataset.execute import JobFeed
 
     feed = JobFeed({"a": [_job("a1", 50), _job("a2", 10)],
                     "b": [_job("b1", 40), _job("b2", 30), _job("b3", 5)], "c": [_job("c1", 60)]})
     for name in "abc":
         feed.start(name)
-    ids = lambda jobs: [j.id for j in jobs]   # noqa: E731
+    ids = lambda taken: [j.id + "*" * marked for j, marked in taken]   # noqa: E731
     assert ids(feed.take("a", 1)) == ["a1"] and feed.left() == 5
     assert ids(feed.take("a", 2)) == ["a2", "b3"]       # b has 75 frames left, c 60: b's shortest
     assert ids(feed.take("a", 1)) == ["b2"]             # b has 70 frames left, c 60
     assert ids(feed.take("a", 1)) == ["c1"]             # c 60, b 40
-    feed.start("a")                                     # a's run died: what it took comes back first
-    assert ids(feed.take("a", 10)) == ["a1", "a2", "b3", "b2", "c1", "b1"] and feed.left() == 0
+    feed.start("a")              # a's run died: what it took comes back first, marked (maybe committed)
+    assert ids(feed.take("b", 1)) == ["b1"]
+    assert ids(feed.take("a", 10)) == ["a1*", "a2*", "b3*", "b2*", "c1*"] and feed.left() == 0
     assert feed.take("b", 3) == [] and feed.rest("b") == []
+    # What a task hands back with rest() comes back to a run of it that starts again.
+    feed = JobFeed({"a": [_job("a1", 5), _job("a2", 5)]}, marked=True)
+    feed.start("a")
+    assert ids(feed.take("a", 1)) == ["a1*"] and [j.id for j in feed.rest("a")] == ["a2"]
+    feed.start("a")
+    assert ids(feed.take("a", 5)) == ["a1*", "a2*"]
 
 
 def test_a_task_whose_nodes_are_all_committed_reports_like_any(tmp_path):

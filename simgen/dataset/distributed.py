@@ -119,7 +119,12 @@ class RayExecutor:
 
         deadline = None if budget_s is None else time.time() + budget_s
         if len(tasks) > 1:
-            actor = self.ray.remote(num_cpus=0)(JobFeed).remote({t.name: t.jobs for t in tasks})
+            from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
+
+            # On the driver's node: a node that the autoscaler retires would take the round with it.
+            here = NodeAffinitySchedulingStrategy(self.ray.get_runtime_context().get_node_id(), soft=True)
+            actor = self.ray.remote(num_cpus=0)(JobFeed).options(scheduling_strategy=here).remote(
+                {t.name: t.jobs for t in tasks})
             tasks = [replace(t, feed=_FeedProxy(actor)) for t in tasks]
         refs = []
         for task in tasks:

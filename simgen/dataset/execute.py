@@ -109,24 +109,28 @@ class JobFeed:
     takes its own share first, then the shortest job left of the task with the most cloth-frames
     left (work stealing), so that the pools of a round end together however fast each one's GPU
     turns out to be. A task that starts again (Ray re-runs it after its worker died) first gets
-    back the jobs its earlier run took; their nodes may be committed, which it checks.
+    back the jobs its earlier run took; those come out marked, since their nodes may be committed.
 
-    parts: {task name: [Job, ...]}, each share in the order it is to run (longest first).
+    parts: {task name: [Job, ...]}, each share in the order it is to run (longest first);
+    marked: every job comes out marked (a task's own jobs, which a re-run of it may have committed).
     """
 
-    def __init__(self, parts: dict) -> None:
+    def __init__(self, parts: dict, marked: bool = False) -> None:
         self.queues = {name: deque(jobs) for name, jobs in parts.items()}
         self.taken: dict = {name: [] for name in parts}
         self.started: set = set()
+        self.marked = {j.key for jobs in parts.values() for j in jobs} if marked else set()
 
     def start(self, name: str) -> None:
+        """Task ``name`` starts (again: what its earlier run took leads its share, marked)."""
         if name in self.started:
+            self.marked |= {j.key for j in self.taken[name]}
             self.queues[name].extendleft(reversed(self.taken[name]))
             self.taken[name] = []
         self.started.add(name)
 
     def take(self, name: str, n: int) -> list:
-        """Up to ``n`` jobs for task ``name`` ([] when none is left anywhere)."""
+        """Up to ``n`` (job, marked) for task ``name`` ([] when none is left anywhere)."""
         out = []
         while len(out) < n:
             own = self.queues[name]
@@ -138,16 +142,20 @@ class JobFeed:
                 break
             out.append(richest.pop())
         self.taken[name] += out
-        return out
+        marks = [j.key in self.marked for j in out]
+        self.marked -= {j.key for j in out}
+        return list(zip(out, marks))
 
     def left(self) -> int:
         """Jobs not taken yet, of all tasks."""
         return sum(len(q) for q in self.queues.values())
 
     def rest(self, name: str) -> list:
-        """Take what is left of task ``name``'s own share (a task that stops early hands it back)."""
+        """Take what is left of task ``name``'s own share (a task that stops early hands it back;
+        should its run die before the driver hears of them, a start again gets them back)."""
         out = list(self.queues[name])
         self.queues[name].clear()
+        self.taken[name] += out
         return out
 
 
@@ -472,27 +480,31 @@ def run_pool_task(task: BatchTask, *, progress=None, on_outcome=None, deadline: 
         if on_outcome is not None:
             on_outcome(outcomes[-1])
 
-    feed = task.feed if task.feed is not None else JobFeed({task.name: list(task.jobs)})
+    # Without a shared feed every job may be committed already (Ray runs a task again after its
+    # worker died); a shared one marks those that an earlier run of the task took.
+    feed = task.feed if task.feed is not None else JobFeed({task.name: list(task.jobs)}, marked=True)
     feed.start(task.name)
+    source = _Source(feed, task.name, loc, reused)
     report = {"outcomes": outcomes, "error": None, "not_done": [], "abandoned_cloth_frames": 0, "slots": 0,
               "wall": 0.0, "cloth_frames": 0, "step_s": 0.0, "write_s": 0.0, "write_wait": 0.0,
               "clock": clock, "gpu_memory_high_bytes": None, "retry_cloth_frames": 0, "retry_wall": 0.0}
-    first = _take(feed, task.name, min(pool_slots(spec, config.device, garment), max(len(task.jobs), 1)), loc, reused)
+    first = source.take(min(pool_slots(spec, config.device, garment), max(len(task.jobs), 1)))
     if not first:
         clock["ready"] = clock["end"] = time.time()
         return report
     slots = len(first)
     pool = SimulationPool(garment, body, slots, config, fps=spec.fps)
-    retries = _PoolRetries(spec, task.attempt, pool, on_outcome, lambda: feed.left() > 0)
+    retries = _PoolRetries(spec, task.attempt, pool, on_outcome, source.waiting)
     for job in first:
         retries.submit(job)
     writes = _Writes(NodeWriter(spec, config, garment, body, loc, slots), spec.overlap_writes, retries.outcome)
 
     def top_up() -> None:
-        # A slot takes a job from the feed only when it frees up (the others' pools may take the rest).
+        # A slot takes a job from the feed only when it frees up (the others' pools may take the rest);
+        # under a deadline the pool refuses each job that would not end in time.
         free = pool.num_slots - pool.busy - pool.queued
-        if free > 0 and not pool.refused:
-            for job in _take(feed, task.name, free, loc, reused):
+        if free > 0:
+            for job in source.take(free):
                 retries.submit(job)
 
     def accept(job, frames) -> bool:
@@ -541,21 +553,31 @@ def run_pool_task(task: BatchTask, *, progress=None, on_outcome=None, deadline: 
     return report
 
 
-def _take(feed, name: str, n: int, loc: Location, reused) -> list:
-    """Up to ``n`` jobs from ``feed`` whose node is not committed yet; reused(job, commit) for each
-    that is (an earlier run of the task committed it)."""
-    out: list = []
-    while len(out) < n:
-        batch = feed.take(name, n - len(out))
-        if not batch:
-            break
-        for job in batch:
-            commit = loc.committed(_node_rel(job))
-            if commit is None:
-                out.append(job)
-            else:
-                reused(job, commit)
-    return out
+class _Source:
+    """A task's side of its :class:`JobFeed`: jobs whose node is not committed yet. A marked job is
+    looked up in the store first (reused(job, commit) for a committed one); once the feed has run
+    dry it is not asked again (no blocking call per frame at a pool's end)."""
+
+    def __init__(self, feed, name: str, loc: Location, reused) -> None:
+        self.feed, self.name, self.loc, self.reused = feed, name, loc, reused
+        self.dry = False
+
+    def take(self, n: int) -> list:
+        out: list = []
+        while len(out) < n and not self.dry:
+            batch = self.feed.take(self.name, n - len(out))
+            self.dry = not batch
+            for job, marked in batch:
+                commit = self.loc.committed(_node_rel(job)) if marked else None
+                if commit is None:
+                    out.append(job)
+                else:
+                    self.reused(job, commit)
+        return out
+
+    def waiting(self) -> bool:
+        """Jobs are left in the feed (this task's or, to be taken from them, the others')."""
+        return not self.dry and self.feed.left() > 0
 
 
 class _PoolRetries:

@@ -386,10 +386,11 @@ class _Driver:
             self.store.save_manifest()
             self.show(self.done)
             error = error or r["error"]
-            if r["not_done"] and report.stopped is None:
+            if error is None and r["not_done"] and report.stopped is None:
                 report.stopped = f"time budget of {time_budget:g} s reached"
-            queue += self.retry
-            self.total += job_cloth_frames(spec, self.retry)
+            if report.stopped is None and error is None:
+                queue += self.retry
+                self.total += job_cloth_frames(spec, self.retry)
             self.retry = []
         if error:
             raise StoreWriteError(error)
