@@ -705,12 +705,16 @@ def test_info_and_export(tiny, tmp_path):
 def _ray_run_with(hook: str, spec, tiny, tmp_path):
     """`--ray local` on the walk_fast sequences of `tiny` with the testing hook ``hook`` (an
     environment variable naming a marker file) set; asserts that the hook fired and that the store
-    is complete, passes the check and equals the locally generated one. Returns the report."""
+    is complete, passes the check and equals the locally generated one. Returns the report and the
+    progress calls, as (seconds since the call, done, total)."""
     pytest.importorskip("ray")
     out, marker = tmp_path / "ray", tmp_path / "hook-marker"
     os.environ[hook] = str(marker)
+    t0 = time.time()
+    rep_progress = []
     try:
-        (rep,) = generate_dataset(spec, out=str(out), ray="local")
+        (rep,) = generate_dataset(spec, out=str(out), ray="local",
+                                  progress=lambda done, total: rep_progress.append((time.time() - t0, done, total)))
     finally:
         del os.environ[hook]
     assert marker.exists()  # the injected failure did happen
@@ -722,7 +726,7 @@ def _ray_run_with(hook: str, spec, tiny, tmp_path):
         np.testing.assert_allclose(remote.sequence(sid)["garment_vertices"], local.sequence(sid)["garment_vertices"],
                                    atol=1e-5)
     np.testing.assert_allclose(remote.template["smoothed"], local.template["smoothed"], atol=1e-5)
-    return rep
+    return rep, rep_progress
 
 
 def test_ray_local_matches_local(tiny, tmp_path):
@@ -730,8 +734,14 @@ def test_ray_local_matches_local(tiny, tmp_path):
     sequences dealt out), a task that fails once is retried, and the store equals the locally
     generated one."""
     spec = load_spec("tiny").with_overrides(motions=["walk_fast"], batch_size=1)
-    rep = _ray_run_with("SIMGEN_DATASET_FAULT_ONCE", spec, tiny, tmp_path)
+    rep, progress = _ray_run_with("SIMGEN_DATASET_FAULT_ONCE", spec, tiny, tmp_path)
     assert rep.written == 2
+    # Progress comes while the pools step (the tasks report to the driver's meter), not only as
+    # tasks end; it never goes back and ends at the total.
+    first_end = min(t["end"] for t in rep.tasks)
+    assert any(0 < done and at < first_end for at, done, _ in progress), (progress, first_end)
+    seen = [done for _, done, _ in progress]
+    assert seen == sorted(seen) and seen[-1] == progress[-1][2] == rep.cloth_frames
 
 
 def test_ray_worker_killed_mid_task_is_replaced(tiny, tmp_path):

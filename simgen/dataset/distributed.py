@@ -25,18 +25,46 @@ from simgen.errors import GenerationError, InputError
 __all__ = ["RayExecutor", "MAX_TASK_RETRIES"]
 
 MAX_TASK_RETRIES = 2
+#: [s] How often a running task reports its cloth-frames to the driver's meter, and the driver
+#: shows them while it waits for a task to end.
+PROGRESS_EVERY_S = 2.0
 
 
-def _run_pool_task(task, deadline):
-    # Runs in a Ray worker: quiet Warp, then the same function as local execution. The deadline is
-    # a wall-clock time fixed by the driver, so a task that waits for a GPU or is retried keeps it.
+class _Meter:
+    """Cloth-frames simulated so far by each running pool task (a Ray actor: the tasks report, the
+    driver reads)."""
+
+    def __init__(self) -> None:
+        self.frames: dict = {}
+
+    def report(self, name: str, frames: int) -> None:
+        self.frames[name] = int(frames)
+
+    def total(self, names: list) -> int:
+        return sum(self.frames.get(n, 0) for n in names)
+
+
+def _run_pool_task(task, deadline, meter):
+    # Runs in a Ray worker: quiet Warp, then the same function as local execution, reporting its
+    # cloth-frames to the meter every PROGRESS_EVERY_S (without waiting for the actor). The deadline
+    # is a wall-clock time fixed by the driver, so a task that waits for a GPU or is retried keeps it.
+    import time
+
     import ray
 
     from simgen._warp_log import quiet_warp
     from simgen.dataset.execute import run_pool_task
 
     quiet_warp()
-    result = run_pool_task(task, deadline=deadline)
+    last = [time.monotonic()]
+
+    def progress(frames: int) -> None:
+        now = time.monotonic()
+        if now - last[0] >= PROGRESS_EVERY_S:
+            last[0] = now
+            meter.report.remote(task.name, frames)
+
+    result = run_pool_task(task, deadline=deadline, progress=progress)
     ctx = ray.get_runtime_context()
     result["worker"] = {"node": ctx.get_node_id()[:12], "pid": os.getpid(),
                         "gpus": [str(g) for g in ctx.get_accelerator_ids().get("GPU", [])]}
@@ -105,13 +133,20 @@ class RayExecutor:
         else:
             self.parallel, self.device, opts = cpus, "cpu", {"num_cpus": 1}
         self._remote = ray.remote(max_retries=MAX_TASK_RETRIES, retry_exceptions=True, **opts)(_run_pool_task)
-        self._pending: dict = {}   # ObjectRef -> (task, on_outcome)
+        self._meter = ray.remote(num_cpus=0)(_Meter).options(scheduling_strategy=self._here()).remote()
+        self._pending: dict = {}   # ObjectRef -> (task, on_outcome, progress)
+
+    def _here(self):
+        # On the driver's node: a node that the autoscaler retires would take the actor with it.
+        from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
+
+        return NodeAffinitySchedulingStrategy(self.ray.get_runtime_context().get_node_id(), soft=True)
 
     def start(self, tasks, budget_s, on_outcome, progress) -> list:
         """Submit the pool tasks of one round, each a Ray task on a GPU (or a CPU) of its own,
         sharing one :class:`JobFeed` actor when there are several (a pool that ends early takes
         the others' jobs); their handles. on_outcome(outcome) for each job once its task has ended
-        (:meth:`next`); progress is not called (a Ray task reports when it ends)."""
+        (:meth:`next`); progress(cloth_frames of the running tasks) while :meth:`next` waits."""
         import time
         from dataclasses import replace
 
@@ -119,24 +154,28 @@ class RayExecutor:
 
         deadline = None if budget_s is None else time.time() + budget_s
         if len(tasks) > 1:
-            from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
-
-            # On the driver's node: a node that the autoscaler retires would take the round with it.
-            here = NodeAffinitySchedulingStrategy(self.ray.get_runtime_context().get_node_id(), soft=True)
-            actor = self.ray.remote(num_cpus=0)(JobFeed).options(scheduling_strategy=here).remote(
+            actor = self.ray.remote(num_cpus=0)(JobFeed).options(scheduling_strategy=self._here()).remote(
                 {t.name: t.jobs for t in tasks})
             tasks = [replace(t, feed=_FeedProxy(actor)) for t in tasks]
         refs = []
         for task in tasks:
-            ref = self._remote.remote(task, deadline)
-            self._pending[ref] = (task, on_outcome)
+            ref = self._remote.remote(task, deadline, self._meter)
+            self._pending[ref] = (task, on_outcome, progress)
             refs.append(ref)
         return refs
 
     def next(self):
-        """(handle, result) of the next task to end, its outcomes handed to its on_outcome first."""
-        ready, _ = self.ray.wait(list(self._pending), num_returns=1)
-        task, on_outcome = self._pending.pop(ready[0])
+        """(handle, result) of the next task to end, its outcomes handed to its on_outcome first;
+        while none has ended, the running tasks' cloth-frames go to progress every few seconds."""
+        ray = self.ray
+        while True:
+            ready, _ = ray.wait(list(self._pending), num_returns=1, timeout=PROGRESS_EVERY_S)
+            if ready:
+                break
+            names = [task.name for task, _, _ in self._pending.values()]
+            progress = next(iter(self._pending.values()))[2]
+            progress(ray.get(self._meter.total.remote(names)))
+        task, on_outcome, _ = self._pending.pop(ready[0])
         result = self._get(ready[0], task)
         for o in result["outcomes"]:
             on_outcome(o)

@@ -413,7 +413,7 @@ class _Driver:
             loc = self.store.loc.root if self.store.loc.is_local else self.store.loc.url()
             tasks = [BatchTask(location=loc, spec=self.spec, garment=self.garment.name, jobs=part,
                                attempt=jobs[0].attempt, device=self.device, body_hash=self.body.hash,
-                               name=f"{rounds}.{i}") for i, part in enumerate(_split(jobs, free))]
+                               name=f"{self.garment.name}/{rounds}.{i}") for i, part in enumerate(_split(jobs, free))]
             handles = self.executor.start(tasks, left, self.record, lambda n: self.show(self.done + n))
             running.update({h: (rounds, t) for h, t in zip(handles, tasks)})
             free -= len(tasks)
