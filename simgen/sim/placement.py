@@ -100,15 +100,18 @@ def placement_rows(positions, lbs_positions, lbs_up, distance_to_body, support) 
     vertices' unsigned distance to the posed body [m] (K, V) (anything >= ON_BODY_DISTANCE where
     farther), support bool (V,). Returns each of :data:`PLACEMENT_KEYS` as (K,) float64:
     body_share, lbs_offset [m], support_drop [m], min_height [m]."""
-    x = np.asarray(positions, dtype=np.float64)
-    d = x[:, support] - np.asarray(lbs_positions, dtype=np.float64)[:, support]
-    up = np.asarray(lbs_up, dtype=np.float64)[:, support]
-    up = up / np.maximum(np.linalg.norm(up, axis=2, keepdims=True), 1e-12)
+    # The support vertices are taken out before anything is converted to float64 (a pool hands over
+    # all of its slots' vertices in float32 every frame; the support is a small part of them).
+    x = np.asarray(positions)
+    idx = np.flatnonzero(support)
+    d = x[:, idx].astype(np.float64) - np.asarray(lbs_positions)[:, idx]
+    up = np.asarray(lbs_up)[:, idx].astype(np.float64)
+    up_length = np.maximum(np.sqrt(np.einsum("kij,kij->ki", up, up)), 1e-12)
     none = np.zeros(len(x))
     return dict(body_share=np.mean(np.asarray(distance_to_body) < ON_BODY_DISTANCE, axis=1),
-                lbs_offset=np.median(np.linalg.norm(d, axis=2), axis=1) if d.shape[1] else none,
-                support_drop=np.median(-np.einsum("kij,kij->ki", d, up), axis=1) if d.shape[1] else none,
-                min_height=x[:, :, 1].min(axis=1))
+                lbs_offset=np.median(np.sqrt(np.einsum("kij,kij->ki", d, d)), axis=1) if len(idx) else none,
+                support_drop=np.median(-np.einsum("kij,kij->ki", d, up) / up_length, axis=1) if len(idx) else none,
+                min_height=x[:, :, 1].min(axis=1).astype(np.float64))
 
 
 def placement_row(positions, lbs_positions, lbs_up, distance_to_body, support) -> dict:
