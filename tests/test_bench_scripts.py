@@ -131,8 +131,9 @@ def test_untangle_replay_untangles_the_coarse_collar_fold(tmp_path):
     assert all(row["left"] == 0 and row["crossings"] > 0 for row in ref["frames"])
 
 
-def test_bench_frame_stats_host_times_the_placement_measures(tmp_path):
-    result = run_script("bench_frame_stats_host.py", "--spec", "tiny", "--slots", "3", "1", "--repeats", "2",
-                        out=tmp_path / "host.json")
+def test_bench_frame_stats_host_times_placement_and_strain(tmp_path):
+    result = run_script("bench_frame_stats_host.py", "--spec", "tiny", "--slots", "3", "1", "--frames", "3",
+                        "--repeats", "2", out=tmp_path / "host.json")
     assert result["sizes"]["garment"] == "tshirt_1k" and 0 < result["sizes"]["support_vertices"] < result["sizes"]["vertices"]
     assert [r["slots"] for r in result["runs"]] == [3, 1] and all(r["placement_ms"] > 0 for r in result["runs"])
+    assert result["sizes"]["sequence_frames"] == 3 and result["strain_summary_s"] > 0

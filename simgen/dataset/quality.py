@@ -12,6 +12,7 @@ import numpy as np
 __all__ = ["triangle_rest_inverse", "triangle_strain", "strain_summary", "body_penetration", "DEFAULT_MAX_STRAIN"]
 
 DEFAULT_MAX_STRAIN = 1.0  # [-] largest principal stretch - 1 of a healthy frame (the check's limit, the retry's trigger)
+STRAIN_CHUNK_FRAMES = 8   # frames per pass of triangle_strain (its temporaries stay a few MB)
 
 
 def triangle_rest_inverse(rest, faces) -> np.ndarray:
@@ -39,19 +40,27 @@ def triangle_strain(positions, faces, rest_inverse) -> np.ndarray:
     :func:`triangle_rest_inverse`. Returns shape (T, F) (or (F,)): sqrt(largest eigenvalue of
     F^T F) - 1 with F = Ds Dm^-1 the (3 x 2) deformation gradient.
     """
-    x = np.asarray(positions, dtype=np.float64)
+    x = np.asarray(positions)
     single = x.ndim == 2
     if single:
         x = x[None]
     f = np.asarray(faces, dtype=np.int64)
-    Ds = np.stack([x[:, f[:, 1]] - x[:, f[:, 0]], x[:, f[:, 2]] - x[:, f[:, 0]]], axis=-1)  # (T, F, 3, 2)
-    F = Ds @ rest_inverse[None]
-    a = np.einsum("tfi,tfi->tf", F[..., 0], F[..., 0])
-    b = np.einsum("tfi,tfi->tf", F[..., 0], F[..., 1])
-    c = np.einsum("tfi,tfi->tf", F[..., 1], F[..., 1])
-    lam = 0.5 * (a + c) + np.sqrt(np.maximum(0.25 * (a - c) ** 2 + b * b, 0.0))
-    s = np.sqrt(lam) - 1.0
-    return s[0] if single else s
+    r = np.asarray(rest_inverse, dtype=np.float64)
+    r00, r01, r10, r11 = (r[:, i, j, None] for i, j in ((0, 0), (0, 1), (1, 0), (1, 1)))
+    out = np.empty((len(x), len(f)))
+    # A few frames at a time, in float64, with the two columns of F = [e1 e2] Dm^-1 written out
+    # (a batched 3x2 @ 2x2 matmul over every triangle of a whole sequence was about 3x slower: BENCHMARKS.md).
+    for t in range(0, len(x), STRAIN_CHUNK_FRAMES):
+        xs = x[t:t + STRAIN_CHUNK_FRAMES].astype(np.float64)
+        p0 = xs[:, f[:, 0]]
+        e1, e2 = xs[:, f[:, 1]] - p0, xs[:, f[:, 2]] - p0                     # (t, F, 3)
+        F0, F1 = e1 * r00 + e2 * r10, e1 * r01 + e2 * r11                      # F's columns
+        a = np.einsum("tfi,tfi->tf", F0, F0)
+        b = np.einsum("tfi,tfi->tf", F0, F1)
+        c = np.einsum("tfi,tfi->tf", F1, F1)
+        lam = 0.5 * (a + c) + np.sqrt(np.maximum(0.25 * (a - c) ** 2 + b * b, 0.0))
+        out[t:t + STRAIN_CHUNK_FRAMES] = np.sqrt(lam) - 1.0
+    return out[0] if single else out
 
 
 def strain_summary(positions, faces, rest_inverse) -> tuple[np.ndarray, np.ndarray]:
