@@ -134,6 +134,7 @@ def test_untangle_replay_untangles_the_coarse_collar_fold(tmp_path):
 def test_bench_frame_stats_host_times_placement_and_strain(tmp_path):
     result = run_script("bench_frame_stats_host.py", "--spec", "tiny", "--slots", "3", "1", "--frames", "3",
                         "--repeats", "2", out=tmp_path / "host.json")
-    assert result["sizes"]["garment"] == "tshirt_1k" and 0 < result["sizes"]["support_vertices"] < result["sizes"]["vertices"]
+    sizes = result["sizes"]
+    assert sizes["garment"] == "tshirt_1k" and 0 < sizes["support_vertices"] < sizes["vertices"]
     assert [r["slots"] for r in result["runs"]] == [3, 1] and all(r["placement_ms"] > 0 for r in result["runs"])
     assert result["sizes"]["sequence_frames"] == 3 and result["strain_summary_s"] > 0
