@@ -4,7 +4,10 @@ The first jobs (:mod:`simgen.dataset.generate`) are dealt into one task per GPU 
 and each retry goes to the next free one as soon as its failure is known. Each task runs
 :func:`simgen.dataset.execute.run_pool_task` in a Ray worker: one simulation pool on its own device
 (Ray's GPU resource), kept full until its jobs run out, writing each node straight into the store
-as its job ends; it returns the outcomes, and the driver alone rewrites the manifest. The store must
+as its job ends; it returns the outcomes, and the driver alone rewrites the manifest. Two small
+actors sit on the driver's node: the round's :class:`simgen.dataset.execute.JobFeed` (the pools
+take their jobs from it as slots free up) and a meter to which every task reports its
+cloth-frames every few seconds (the driver's progress). The store must
 be reachable from every worker under the same name: a local folder for ``--ray local`` or a
 single machine, a shared filesystem or an fsspec URL (s3://, gs://, ...) for a cluster.
 
