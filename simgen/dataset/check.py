@@ -51,7 +51,6 @@ DEFAULT_MAX_DEPTH = 1.0e-3     # [m] the solver's contract: no vertex more than 
 MAX_CROSSING_SHARE = 0.005     # a sequence is named with crossing edges on more than this share of its frames ...
 MAX_CROSSING_RUN = 3           # ... or on more than this many frames in a row
 _POSE_CHUNK = 16
-_STRAIN_CHUNK = 32
 #: The per-frame arrays every sequence node holds.
 _SEQUENCE_ARRAYS = ("garment_vertices", "poses", "trans", "betas")
 
@@ -379,13 +378,11 @@ def _check_sequence_strain(rep: CheckReport, node: str, seq, bm, ctx: _Context,
     x, poses, trans, betas = seq
     T = x.shape[0]
     over = {}  # frame -> {triangle: strain} of the triangles over the limit
-    smax = below = 0.0
-    for start in range(0, T, _STRAIN_CHUNK):  # (chunk, F, 3, 2) float64 deformation gradients
-        s = triangle_strain(x[start:start + _STRAIN_CHUNK], ctx.faces, ctx.rest_inv)
-        smax = max(smax, float(s.max()))
-        below = max(below, float(s[s <= max_strain].max(initial=0.0)))
-        for t, f in zip(*np.nonzero(s > max_strain)):
-            over.setdefault(start + int(t), {})[int(f)] = float(s[t, f])
+    s = triangle_strain(x, ctx.faces, ctx.rest_inv)       # (T, F); it works a few frames at a time
+    smax = float(s.max())
+    below = float(s[s <= max_strain].max(initial=0.0))
+    for t, f in zip(*np.nonzero(s > max_strain)):
+        over.setdefault(int(t), {})[int(f)] = float(s[t, f])
     rep.max_strain = max(rep.max_strain, smax)
     free, pinched = _split_pinched_strain(over, x, poses, trans, betas, bm, ctx.faces, **ctx.penetration)
     rep.pinched_strain_frames += len(pinched)
