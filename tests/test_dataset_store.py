@@ -513,14 +513,17 @@ def test_a_retry_joins_its_pool_while_jobs_wait_there(tmp_path, monkeypatch):
 class _TwoWorkers:
     """An executor with two workers that runs its pool tasks in this process, the oldest first when
     the driver asks for the next to end, and logs each start (with its jobs) and end; with
-    ``share`` the tasks of a round share a :class:`JobFeed`, as on Ray."""
+    ``share`` the tasks of a round share a :class:`JobFeed`, as on Ray; with ``live`` a task's
+    failures for the driver reach it before the task ends, as the Ray executor hands them over
+    (next() gives (None, None) first)."""
 
     parallel = 2
 
-    def __init__(self, share: bool = False) -> None:
+    def __init__(self, share: bool = False, live: bool = False) -> None:
         self.waiting: list = []
         self.log: list = []
-        self.share = share
+        self.share, self.live = share, live
+        self.held = None
 
     def start(self, tasks, budget_s, on_outcome, progress):
         from dataclasses import replace
@@ -538,10 +541,24 @@ class _TwoWorkers:
         return handles
 
     def next(self):
+        from simgen.dataset.distributed import _for_driver
         from simgen.dataset.execute import run_pool_task
 
-        handle, task, on_outcome = self.waiting.pop(0)
-        result = run_pool_task(task, on_outcome=on_outcome)
+        if self.held is not None:
+            (handle, result, rest, on_outcome), self.held = self.held, None
+        else:
+            handle, task, on_outcome = self.waiting.pop(0)
+            outcomes: list = []
+            result = run_pool_task(task, on_outcome=outcomes.append)
+            early = [o for o in outcomes if self.live and _for_driver(o)]
+            rest = [o for o in outcomes if not any(o is e for e in early)]
+            if early:
+                self.held = handle, result, rest, on_outcome
+                for o in early:
+                    on_outcome(o)
+                return None, None
+        for o in rest:
+            on_outcome(o)
         self.log.append(("end", handle))
         return handle, result
 
@@ -594,6 +611,36 @@ def test_a_retry_starts_on_the_first_free_worker(tmp_path, monkeypatch, fails):
     assert open_dataset(tmp_path / "s").manifest["failed"] == {} and check_dataset(tmp_path / "s").passed
 
 
+def test_a_failure_reported_before_its_task_ends_starts_its_retry_at_once(tmp_path, monkeypatch):
+    """A job that fails in the pool that ends last, reported while that pool still steps (as a Ray
+    task reports it to the meter), runs again at once on the worker that is already free, not after
+    its pool ends."""
+    from simgen.dataset import generate
+
+    workers = _TwoWorkers(live=True)
+    monkeypatch.setattr(generate, "_make_executor", lambda ray, spec: workers)
+    _patch_pools(monkeypatch, lambda j, r: _injected(j) if j.id == "walk_fast__zero" and j.attempt == 1 else r)
+    (rep,) = generate_dataset(micro(), out=str(tmp_path / "s"))
+    assert rep.pending == 0 and not rep.failed and rep.written == 2 and rep.retried == 1
+    assert workers.log == [("start", 0, ["template", "zero", "b1p2", "walk_fast__b1p2"]),
+                           ("start", 1, ["walk_fast__zero"]), ("end", 0), ("start", 3, ["walk_fast__zero"]),
+                           ("end", 1), ("end", 3)]
+    assert open_dataset(tmp_path / "s").manifest["failed"] == {} and check_dataset(tmp_path / "s").passed
+
+
+def test_ray_failures_count_once_whichever_way_they_come():
+    """A Ray task's failure reaches the driver from the meter while the task runs and again in its
+    result: the first of the two counts. Failures that the pool retries itself, and jobs that
+    waited for a failed template, stay with the result."""
+    from simgen.dataset.distributed import _Failures, _for_driver
+
+    fail = {"kind": "sequence", "id": "walk__zero", "attempt": 1, "ok": False}
+    seen = _Failures()
+    assert seen.first(fail) and not seen.first(dict(fail)) and seen.first({**fail, "attempt": 2})
+    assert _for_driver(fail) and not _for_driver({**fail, "ok": True})
+    assert not _for_driver({**fail, "retry": "pool"}) and not _for_driver({**fail, "waiting": True})
+
+
 def _job(name: str, frames: int):
     from simgen.dataset.execute import Job, rest_clip
     from simgen.motion.clip import MotionClip
@@ -603,10 +650,10 @@ def _job(name: str, frames: int):
     return Job("sequence", name, clip, np.zeros(10))
 
 
-def test_job_feed_hands_out_own_jobs_then_steals_the_shortest_of_the_richest():
-    """A task takes its own share first, in order; then the shortest job of the task with the most
-    frames left; a task that starts again gets back what its earlier run took and what it handed
-    back, marked to be looked up in the store; rest() hands back a share's untaken jobs."""
+def test_job_feed_hands_out_own_jobs_then_steals_the_longest_left():
+    """A task takes its own share first, in order; then the longest job left of any task; a task
+    that starts again gets back what its earlier run took and what it handed back, marked to be
+    looked up in the store; rest() hands back a share's untaken jobs."""
     from simgen.dataset.execute import JobFeed
 
     feed = JobFeed({"a": [_job("a1", 50), _job("a2", 10)],
@@ -615,12 +662,12 @@ def test_job_feed_hands_out_own_jobs_then_steals_the_shortest_of_the_richest():
         feed.start(name)
     ids = lambda taken: [j.id + "*" * marked for j, marked in taken]   # noqa: E731
     assert ids(feed.take("a", 1)) == ["a1"] and feed.left() == 5
-    assert ids(feed.take("a", 2)) == ["a2", "b3"]       # b has 75 frames left, c 60: b's shortest
-    assert ids(feed.take("a", 1)) == ["b2"]             # b has 70 frames left, c 60
-    assert ids(feed.take("a", 1)) == ["c1"]             # c 60, b 40
+    assert ids(feed.take("a", 2)) == ["a2", "c1"]       # c1 (60) is the longest left
+    assert ids(feed.take("a", 1)) == ["b1"]             # then b's, longest first
+    assert ids(feed.take("a", 1)) == ["b2"]
     feed.start("a")              # a's run died: what it took comes back first, marked (maybe committed)
-    assert ids(feed.take("b", 1)) == ["b1"]
-    assert ids(feed.take("a", 10)) == ["a1*", "a2*", "b3*", "b2*", "c1*"] and feed.left() == 0
+    assert ids(feed.take("b", 1)) == ["b3"]
+    assert ids(feed.take("a", 10)) == ["a1*", "a2*", "c1*", "b1*", "b2*"] and feed.left() == 0
     assert feed.take("b", 3) == [] and feed.rest("b") == []
     # What a task hands back with rest() comes back to a run of it that starts again.
     feed = JobFeed({"a": [_job("a1", 5), _job("a2", 5)]}, marked=True)
@@ -750,6 +797,31 @@ def test_ray_worker_killed_mid_task_is_replaced(tiny, tmp_path):
     simulates the rest; the store is complete, passes the check and equals the local one."""
     _ray_run_with("SIMGEN_DATASET_KILL_ONCE", load_spec("tiny").with_overrides(motions=["walk_fast"], batch_size=2),
                   tiny, tmp_path)
+
+
+def test_ray_failure_reported_while_its_task_runs_is_retried_once(tiny, tmp_path):
+    """`--ray local` with the template's first attempt diverging: the worker reports the failure
+    to the driver as it happens and the task's result repeats it; the driver counts it once, runs
+    the template again at twice the substeps, and the store is complete, passes the check and
+    holds the same sequences as the local one (every job relaxes from the garment, not from the
+    template node)."""
+    pytest.importorskip("ray")
+    out, marker = tmp_path / "ray", tmp_path / "diverge-marker"
+    spec = load_spec("tiny").with_overrides(motions=["walk_fast"], batch_size=2)
+    os.environ["SIMGEN_DATASET_DIVERGE_ONCE"] = str(marker)
+    try:
+        (rep,) = generate_dataset(spec, out=str(out), ray="local")
+    finally:
+        del os.environ["SIMGEN_DATASET_DIVERGE_ONCE"]
+    assert marker.exists()
+    assert rep.pending == 0 and not rep.failed and rep.retried == 1 and rep.written == 2
+    ds = open_dataset(out)
+    assert ds.manifest["failed"] == {} and Location(out).node_attrs("template")["stats"]["attempts"] == 2
+    assert check_dataset(out).passed
+    local = open_dataset(tiny["out"])
+    for sid in ["walk_fast__b1p2", "walk_fast__zero"]:
+        np.testing.assert_allclose(ds.sequence(sid)["garment_vertices"], local.sequence(sid)["garment_vertices"],
+                                   atol=1e-5)
 
 
 def test_object_store_commit_markers():

@@ -1,13 +1,14 @@
 """Ray execution of dataset generation (``simgen dataset generate --ray ADDRESS|local``).
 
 The first jobs (:mod:`simgen.dataset.generate`) are dealt into one task per GPU (or per CPU),
-and each retry goes to the next free one as soon as its failure is known. Each task runs
+and each retry goes to the next free one as soon as its failure is known (the task reports it at
+once, before it returns). Each task runs
 :func:`simgen.dataset.execute.run_pool_task` in a Ray worker: one simulation pool on its own device
 (Ray's GPU resource), kept full until its jobs run out, writing each node straight into the store
 as its job ends; it returns the outcomes, and the driver alone rewrites the manifest. Two small
 actors sit on the driver's node: the round's :class:`simgen.dataset.execute.JobFeed` (the pools
 take their jobs from it as slots free up) and a meter to which every task reports its
-cloth-frames every few seconds (the driver's progress). The store must
+cloth-frames every few seconds (the driver's progress) and each failed job as it fails. The store must
 be reachable from every worker under the same name: a local folder for ``--ray local`` or a
 single machine, a shared filesystem or an fsspec URL (s3://, gs://, ...) for a cluster.
 
@@ -34,17 +35,44 @@ PROGRESS_EVERY_S = 2.0
 
 
 class _Meter:
-    """Cloth-frames simulated so far by each running pool task (a Ray actor: the tasks report, the
-    driver reads)."""
+    """Cloth-frames simulated so far by each running pool task, and the failed jobs that the driver
+    is to run again (a Ray actor: the tasks report, the driver reads)."""
 
     def __init__(self) -> None:
         self.frames: dict = {}
+        self.failed: list = []   # (task name, outcome) not read yet
 
     def report(self, name: str, frames: int) -> None:
         self.frames[name] = int(frames)
 
-    def total(self, names: list) -> int:
-        return sum(self.frames.get(n, 0) for n in names)
+    def fail(self, name: str, outcome: dict) -> None:
+        self.failed.append((name, outcome))
+
+    def poll(self, names: list) -> tuple[int, list]:
+        """(cloth-frames of the tasks ``names``, the failures reported since the last poll)."""
+        failed, self.failed = self.failed, []
+        return sum(self.frames.get(n, 0) for n in names), failed
+
+
+def _for_driver(outcome: dict) -> bool:
+    """A failed job that its own pool does not run again: the driver retries it (or gives up)."""
+    return not outcome["ok"] and not outcome.get("waiting") and outcome.get("retry") != "pool"
+
+
+class _Failures:
+    """Failed outcomes already handed to the driver: each reaches it twice, from the meter while
+    its task runs and in the task's result, and counts once."""
+
+    def __init__(self) -> None:
+        self.seen: set = set()
+
+    def first(self, o: dict) -> bool:
+        """True the first time the failure ``o`` (kind, id, attempt) is seen."""
+        key = (o["kind"], o["id"], o["attempt"])
+        if key in self.seen:
+            return False
+        self.seen.add(key)
+        return True
 
 
 def _run_pool_task(task, deadline, meter):
@@ -67,7 +95,12 @@ def _run_pool_task(task, deadline, meter):
             last[0] = now
             meter.report.remote(task.name, frames)
 
-    result = run_pool_task(task, deadline=deadline, progress=progress)
+    def failed(o: dict) -> None:
+        # At once, not with the result: the driver starts the retry on the first free GPU.
+        if _for_driver(o):
+            meter.fail.remote(task.name, o)
+
+    result = run_pool_task(task, deadline=deadline, progress=progress, on_outcome=failed)
     ctx = ray.get_runtime_context()
     result["worker"] = {"node": ctx.get_node_id()[:12], "pid": os.getpid(),
                         "gpus": [str(g) for g in ctx.get_accelerator_ids().get("GPU", [])]}
@@ -138,6 +171,7 @@ class RayExecutor:
         self._remote = ray.remote(max_retries=MAX_TASK_RETRIES, retry_exceptions=True, **opts)(_run_pool_task)
         self._meter = ray.remote(num_cpus=0)(_Meter).options(scheduling_strategy=self._here()).remote()
         self._pending: dict = {}   # ObjectRef -> (task, on_outcome, progress)
+        self._failures = _Failures()
 
     def _here(self):
         # On the driver's node: a node that the autoscaler retires would take the actor with it.
@@ -169,19 +203,27 @@ class RayExecutor:
 
     def next(self):
         """(handle, result) of the next task to end, its outcomes handed to its on_outcome first;
-        while none has ended, the running tasks' cloth-frames go to progress every few seconds."""
+        while none has ended, the running tasks' cloth-frames go to progress every few seconds,
+        and (None, None) comes back as soon as one of them reports a job for the driver to run
+        again (handed to on_outcome), so that its retry can start on a free worker."""
         ray = self.ray
         while True:
             ready, _ = ray.wait(list(self._pending), num_returns=1, timeout=PROGRESS_EVERY_S)
             if ready:
                 break
-            names = [task.name for task, _, _ in self._pending.values()]
-            progress = next(iter(self._pending.values()))[2]
-            progress(ray.get(self._meter.total.remote(names)))
+            by_name = {task.name: (on_outcome, progress) for task, on_outcome, progress in self._pending.values()}
+            frames, failed = ray.get(self._meter.poll.remote(list(by_name)))
+            next(iter(by_name.values()))[1](frames)
+            early = [(by_name[name][0], o) for name, o in failed if name in by_name and self._failures.first(o)]
+            for on_outcome, o in early:
+                on_outcome(o)
+            if early:
+                return None, None
         task, on_outcome, _ = self._pending.pop(ready[0])
         result = self._get(ready[0], task)
         for o in result["outcomes"]:
-            on_outcome(o)
+            if not _for_driver(o) or self._failures.first(o):
+                on_outcome(o)
         return ready[0], result
 
     def _get(self, ref, task) -> dict:

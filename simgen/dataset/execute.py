@@ -106,10 +106,11 @@ def job_cloth_frames(spec, jobs) -> int:
 
 class JobFeed:
     """The jobs of the pool tasks of one round, handed out as their pools' slots free up: a task
-    takes its own share first, then the shortest job left of the task with the most cloth-frames
-    left (work stealing), so that the pools of a round end together however fast each one's GPU
-    turns out to be. A task that starts again (Ray re-runs it after its worker died) first gets
-    back the jobs its earlier run took; those come out marked, since their nodes may be committed.
+    takes its own share first, then the longest job left of any task (work stealing, longest
+    processing time first), so that the jobs started last, as the feed runs dry, are the round's
+    shortest on every pool, which then end close together however fast each one's GPU turns out
+    to be. A task that starts again (Ray re-runs it after its worker died) first gets back the
+    jobs its earlier run took; those come out marked, since their nodes may be committed.
 
     parts: {task name: [Job, ...]}, each share in the order it is to run (longest first);
     marked: every job comes out marked (a task's own jobs, which a re-run of it may have committed).
@@ -137,10 +138,10 @@ class JobFeed:
             if own:
                 out.append(own.popleft())
                 continue
-            richest = max(self.queues.values(), key=lambda q: sum(j.frames for j in q))
-            if not richest:
+            fronts = [q for q in self.queues.values() if q]
+            if not fronts:
                 break
-            out.append(richest.pop())
+            out.append(max(fronts, key=lambda q: q[0].frames).popleft())
         self.taken[name] += out
         marks = [j.key in self.marked for j in out]
         self.marked -= {j.key for j in out}
@@ -526,6 +527,7 @@ def run_pool_task(task: BatchTask, *, progress=None, on_outcome=None, deadline: 
                 if writes.error is not None or not (pool.busy or pool.queued):
                     break
             for job, res in pool.step():
+                res = _injected_divergence(job, res)
                 retries.ended(job, res)
                 writes.submit(job, res)
             writes.collect()
@@ -651,6 +653,16 @@ def _injected_fault() -> None:
     # SIMGEN_DATASET_FAULT_ONCE=FILE: the first batch fails at its start, as a crashed task would.
     if _claims_injection("SIMGEN_DATASET_FAULT_ONCE"):
         raise RuntimeError("injected fault (SIMGEN_DATASET_FAULT_ONCE)")
+
+
+def _injected_divergence(job: Job, res):
+    # SIMGEN_DATASET_DIVERGE_ONCE=FILE: the template's first attempt diverges (in whichever process
+    # runs it), a failure that only the driver retries.
+    if job.kind == "template" and job.attempt == 1 and _claims_injection("SIMGEN_DATASET_DIVERGE_ONCE"):
+        from simgen.sim import SimulationFailure
+
+        return SimulationFailure(job.key, "diverged (SIMGEN_DATASET_DIVERGE_ONCE)", "relax", 0)
+    return res
 
 
 def _injected_kill() -> None:

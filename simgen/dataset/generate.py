@@ -380,6 +380,13 @@ class _Driver:
             if not running:
                 break
             handle, r = self.executor.next()
+            if handle is None:
+                # A running task reported failed jobs (Ray): their retries start on a free worker.
+                if report.stopped is None and error is None:
+                    queue += self.retry
+                    self.total += job_cloth_frames(spec, self.retry)
+                self.retry = []
+                continue
             round_, task = running.pop(handle)
             self._account(round_, task, r)
             report.wall = time.perf_counter() - t0
