@@ -26,8 +26,9 @@ from simgen.sim import SimulationFailure
 TINY_IDS = {f"{m}__{s}" for m in ("jumping_jacks", "walk_fast") for s in ("zero", "b1p2")}
 
 
-def micro(**over):
-    """tiny with one clip of one frame and a 4-frame protocol: for tests of the driver's logic."""
+def micro(library=("walk_fast",), **over):
+    """tiny with one clip (``library``: its motions) of one frame and a 4-frame protocol: for tests
+    of the driver's logic."""
     from simgen.dataset import parse_spec
     from simgen.dataset.spec import preset_path
 
@@ -36,7 +37,7 @@ def micro(**over):
     doc = tomllib.loads(preset_path("tiny").read_text())
     doc["name"] = "micro"
     doc["protocol"] = {"relax_frames": 0, "ramp_frames": 3, "rest_frames": 1}
-    doc["motions"].update(library=["walk_fast"], max_frames=1)
+    doc["motions"].update(library=list(library), max_frames=1)
     return parse_spec(doc, source="micro.toml").with_overrides(**over)
 
 
@@ -489,19 +490,26 @@ def test_diverged_job_is_retried_with_smaller_steps(tmp_path, monkeypatch):
     assert not r.passed and [p["check"] for p in r.problems] == ["failed"]
 
 
-def test_a_retry_joins_its_pool_while_jobs_wait_there(tmp_path, monkeypatch):
-    """A job that fails while other jobs still wait for a slot runs again in the same pool, in a slot
-    at twice the substeps (the pool's next free slot, before the job still waiting), and is written
-    like a retry run alone: attempts 2, twice the substeps, and the store passes the check."""
+@pytest.mark.parametrize("motions", [1, 2])
+def test_a_retry_joins_its_pool_while_the_waiting_work_outlasts_it(tmp_path, monkeypatch, motions):
+    """A job that fails while the jobs still waiting for the pool's slots will keep it busy for
+    longer than the retry takes (twice its cloth-frames, per slot) runs again in the same pool, in a
+    slot at twice the substeps (the pool's next free slot, before the jobs still waiting), and is
+    written like a retry run alone: attempts 2, twice the substeps, and the store passes the check.
+    With less work waiting (one job as long as the failed one) it runs in a later pool instead."""
     calls = _patch_pools(monkeypatch, lambda j, r: _injected(j) if j.id == "walk_fast__zero" and j.attempt == 1
                          else r)
-    spec = micro(batch_size=1, overlap_writes=False)       # one slot: walk_fast__b1p2 waits when it fails
+    library = ["walk_fast", "jumping_jacks"][:motions]
+    spec = micro(library=library, batch_size=1, overlap_writes=False)   # one slot: the others wait
     (rep,) = generate_dataset(spec, out=str(tmp_path / "s"))
-    assert rep.pending == 0 and not rep.failed and rep.written == 2
+    assert rep.pending == 0 and not rep.failed and rep.written == 2 * motions
     s = spec.substeps
-    # The retry takes the next free slot, before the job still waiting (the longer work goes first).
-    assert _runs(calls) == [[f"template@{s}", f"zero@{s}", f"b1p2@{s}", f"walk_fast__zero@{s}",
-                             f"walk_fast__zero@{2 * s}", f"walk_fast__b1p2@{s}"]]
+    first = [f"template@{s}", f"zero@{s}", f"b1p2@{s}", f"walk_fast__zero@{s}"]
+    if motions == 2:   # three jobs of 4 cloth-frames wait, the retry takes 8 pool frames
+        assert _runs(calls) == [first + [f"walk_fast__zero@{2 * s}", f"walk_fast__b1p2@{s}",
+                                         f"jumping_jacks__zero@{s}", f"jumping_jacks__b1p2@{s}"]]
+    else:              # one job of 4 waits
+        assert _runs(calls) == [first + [f"walk_fast__b1p2@{s}"], [f"walk_fast__zero@{2 * s}"]]
     frames = spec.protocol_frames() + spec.max_frames - 1
     assert rep.retried == 1 and rep.retry_cloth_frames == frames and rep.retry_simulate_wall > 0
     ds = open_dataset(tmp_path / "s")
@@ -660,8 +668,10 @@ def test_job_feed_hands_out_own_jobs_then_steals_the_longest_left():
                     "b": [_job("b1", 40), _job("b2", 30), _job("b3", 5)], "c": [_job("c1", 60)]})
     for name in "abc":
         feed.start(name)
+    # What one pool can still expect: (195 frames + 6 jobs x (3 - 1) protocol frames) / 3 tasks.
+    assert feed.share_left(3) == pytest.approx(69.0)
     ids = lambda taken: [j.id + "*" * marked for j, marked in taken]   # noqa: E731
-    assert ids(feed.take("a", 1)) == ["a1"] and feed.left() == 5
+    assert ids(feed.take("a", 1)) == ["a1"] and feed.left() == 5 and feed.share_left(1) == pytest.approx(145 / 3)
     assert ids(feed.take("a", 2)) == ["a2", "c1"]       # c1 (60) is the longest left
     assert ids(feed.take("a", 1)) == ["b1"]             # then b's, longest first
     assert ids(feed.take("a", 1)) == ["b2"]

@@ -123,10 +123,10 @@ class _FeedProxy:
 
         return ray.get(self.actor.take.remote(name, n))
 
-    def left(self) -> int:
+    def share_left(self, protocol_frames: int) -> float:
         import ray
 
-        return ray.get(self.actor.left.remote())
+        return ray.get(self.actor.share_left.remote(protocol_frames))
 
     def rest(self, name: str) -> list:
         import ray

@@ -17,9 +17,10 @@ ends to a :class:`NodeWriter` (ground truth, statistics, Zarr,
 commit), in background threads behind the simulation with ``execution.overlap_writes``. A job
 that diverges fails while the others are written, and runs again with the substep halved (attempt
 k runs substeps * 2^(k-1)) until ``execution.max_attempts``: in the same pool (the job's
-``substeps_factor`` there) while jobs still wait for a slot in it, and its failed attempt's outcome
-then says ``retry: "pool"``; once the queue ran dry, in a later, smaller pool run by the driver (a
-pool's idle slots cost most of what busy ones cost: BENCHMARKS.md). A sequence with a
+``substeps_factor`` there) while the work still waiting for the pool's slots keeps it full for
+longer than the retry takes, and its failed attempt's outcome then says ``retry: "pool"``; else in
+a small pool that the driver starts on the first free worker (a retry left to step on alone in a
+draining pool pays for the idle slots around it: BENCHMARKS.md). A sequence with a
 strain outlier (a triangle past the check's limit on some frame) is such a failure too while
 attempts are left (:func:`_strain_outlier`). The template is not retried in the pool (the fits
 need it written first: the driver runs its retry alone, :mod:`simgen.dataset.generate`).
@@ -150,6 +151,12 @@ class JobFeed:
     def left(self) -> int:
         """Jobs not taken yet, of all tasks."""
         return sum(len(q) for q in self.queues.values())
+
+    def share_left(self, protocol_frames: int) -> float:
+        """Cloth-frames of the jobs not taken yet over the round's tasks: what one pool can still
+        expect from the feed (protocol_frames: each job's start protocol)."""
+        frames = sum(protocol_frames + j.frames - 1 for q in self.queues.values() for j in q)
+        return frames / max(len(self.queues), 1)
 
     def rest(self, name: str) -> list:
         """Take what is left of task ``name``'s own share (a task that stops early hands it back;
@@ -577,24 +584,25 @@ class _Source:
                     self.reused(job, commit)
         return out
 
-    def waiting(self) -> bool:
-        """Jobs are left in the feed (this task's or, to be taken from them, the others')."""
-        return not self.dry and self.feed.left() > 0
+    def waiting(self, protocol_frames: int) -> float:
+        """Cloth-frames this task's pool can still expect from the feed (:meth:`JobFeed.share_left`)."""
+        return 0.0 if self.dry else self.feed.share_left(protocol_frames)
 
 
 class _PoolRetries:
-    """Sends a task's failed jobs back into its pool at twice the substeps while other jobs still
-    wait for a slot there (queued in the pool or left in its feed: module doc).
+    """Sends a task's failed jobs back into its pool at twice the substeps while the work still
+    waiting for the pool's slots (queued in the pool or left in its feed: module doc) keeps the
+    pool full for longer than the retry takes.
 
     spec: the store's spec; attempt: the task's (its pool's substeps); pool: the SimulationPool;
-    on_outcome: the caller's, handed every outcome after this has seen it; fed() -> bool: jobs are
-    left in the task's feed. ``cloth_frames`` and
+    on_outcome: the caller's, handed every outcome after this has seen it; fed(protocol_frames) ->
+    cloth-frames the pool can still expect from its feed. ``cloth_frames`` and
     ``wall`` [s]: the frames of the later attempts that ended, and their share of the pool's time.
     """
 
     def __init__(self, spec, attempt: int, pool, on_outcome, fed) -> None:
         self.spec, self.attempt, self.pool, self.on_outcome = spec, int(attempt), pool, on_outcome
-        self.fed = fed           # () -> bool: jobs are left in the task's feed
+        self.fed = fed
         self.jobs: dict = {}     # key -> the Job of its latest attempt
         self.cloth_frames = 0
         self.wall = 0.0
@@ -613,17 +621,24 @@ class _PoolRetries:
 
     def outcome(self, o: dict) -> None:
         job = self.jobs[f"{o['kind']}:{o['id']}"]
-        # Only while jobs wait for a slot: idle slots cost most of what busy ones cost, so a
-        # retry started once the queue ran dry would stretch the pool's tail at the full pool's
-        # price; the driver runs those in a later, smaller pool.
         again = (not o["ok"] and not o.get("waiting") and job.kind != "template"
-                 and job.attempt < self.spec.max_attempts and (self.pool.queued > 0 or self.fed()))
+                 and job.attempt < self.spec.max_attempts and self._ends_in_time(job))
         if again:
             o["retry"] = "pool"
         if self.on_outcome is not None:
             self.on_outcome(o)       # the failure is in the manifest before its retry starts
         if again:
             self.submit(replace(job, attempt=job.attempt + 1))
+
+    def _ends_in_time(self, job: Job) -> bool:
+        """The retry of ``job`` ends before the pool runs out of waiting work: the pool frames it
+        takes (its cloth-frames at twice the substeps) are at most those the full pool needs for
+        the work still waiting. A retry started later would step on alone while the pool drains
+        (an idle slot costs a good part of a busy one: BENCHMARKS.md) and hold its GPU past the
+        other pools; the driver runs it in a small pool on the first free worker instead."""
+        need = job_cloth_frames(self.spec, [job]) * 2 ** (job.attempt + 1 - self.attempt)
+        waiting = self.pool.queued_frames + self.fed(self.spec.protocol_frames())
+        return waiting >= need * self.pool.num_slots
 
 
 def _memory_high(device: str) -> int | None:

@@ -112,6 +112,11 @@ class SimulationPool:
         return len(self._queue)
 
     @property
+    def queued_frames(self) -> int:
+        """Pool frames the queued jobs will take (each job's frames times its substeps_factor)."""
+        return sum(self._cloth_frames_of(e) for e in self._queue)
+
+    @property
     def busy(self) -> int:
         """Slots running a job (or about to start one at the next frame)."""
         return len(self._running)
