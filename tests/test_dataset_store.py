@@ -12,6 +12,7 @@ import signal
 import subprocess
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -636,17 +637,74 @@ def test_a_failure_reported_before_its_task_ends_starts_its_retry_at_once(tmp_pa
     assert open_dataset(tmp_path / "s").manifest["failed"] == {} and check_dataset(tmp_path / "s").passed
 
 
-def test_ray_failures_count_once_whichever_way_they_come():
-    """A Ray task's failure reaches the driver from the meter while the task runs and again in its
-    result: the first of the two counts. Failures that the pool retries itself, and jobs that
-    waited for a failed template, stay with the result."""
-    from simgen.dataset.distributed import _Failures, _for_driver
+def test_ray_executor_hands_failures_over_while_tasks_run_and_counts_them_once():
+    """`RayExecutor.next` with a stand-in for Ray: while the task runs, the failures the meter has
+    reach the driver at once, in order, and next() returns (None, None) so that their retries can
+    start; a failure the meter repeats, one of a task that has ended, and the same failures in the
+    task's result are not handed over again, nor anything the task says later about a job it had
+    handed to the driver (a run of it that Ray started again)."""
+    from types import SimpleNamespace
 
-    fail = {"kind": "sequence", "id": "walk__zero", "attempt": 1, "ok": False}
-    seen = _Failures()
-    assert seen.first(fail) and not seen.first(dict(fail)) and seen.first({**fail, "attempt": 2})
-    assert _for_driver(fail) and not _for_driver({**fail, "ok": True})
-    assert not _for_driver({**fail, "retry": "pool"}) and not _for_driver({**fail, "waiting": True})
+    from simgen.dataset.distributed import RayExecutor, _Delivered, _for_driver
+
+    def outcome(job, attempt, ok, **extra):
+        return {"kind": "sequence", "id": job, "attempt": attempt, "ok": ok, **extra}
+
+    in_pool, handed = outcome("a", 1, False, retry="pool"), outcome("a", 2, False)
+    done = outcome("b", 1, True)
+    polls = [(5, [("t/1.0", in_pool), ("t/1.0", handed), ("gone/1.0", outcome("c", 1, False))]),
+             (9, [("t/1.0", dict(handed))])]
+    waits = [[], [], ["ref"]]
+    rerun = outcome("a", 1, True)      # the job again, in a run of the task started again
+    ray = SimpleNamespace(wait=lambda refs, num_returns, timeout: (waits.pop(0), []),
+                          get=lambda x: {"outcomes": [in_pool, done, handed, rerun]} if x == "ref" else x)
+    meter = SimpleNamespace(poll=SimpleNamespace(remote=lambda names: polls.pop(0)))
+    ex = object.__new__(RayExecutor)
+    ex.ray, ex._meter, ex._delivered = ray, meter, _Delivered()
+    got, shown = [], []
+    ex._pending = {"ref": (SimpleNamespace(name="t/1.0", location="/store"), got.append, shown.append)}
+    assert ex.next() == (None, None) and got == [in_pool, handed] and shown == [5]
+    assert ex.next() == ("ref", {"outcomes": [in_pool, done, handed, rerun]})
+    assert got == [in_pool, handed, done] and shown == [5, 9] and not polls and not waits
+    # Another store's task with the same job ids is news.
+    other = SimpleNamespace(name="t/1.0", location="/other")
+    assert ex._delivered.first(other, handed) and not ex._delivered.first(other, outcome("a", 1, True))
+    assert _for_driver(handed) and not _for_driver(done) and not _for_driver(in_pool)
+    assert not _for_driver({**handed, "waiting": True})
+
+
+def test_a_retry_joins_its_pool_only_if_the_waiting_work_covers_it():
+    """The in-pool retry rule at its boundary: the retry's pool frames (its cloth-frames times its
+    substeps over the pool's) times the slots against the pool frames waiting (queued, and the
+    pool's share of the feed). A job of the pool's attempt retries at twice the pool's substeps, a
+    job already retried in a pool of attempt 1 at four times."""
+    from types import SimpleNamespace
+
+    from simgen.dataset.execute import _PoolRetries, job_cloth_frames
+
+    spec = micro()
+    job = _job("a", 30)
+    cf = job_cloth_frames(spec, [job])
+    for pool_attempt, job_attempt, times in ((1, 1, 2), (2, 2, 2), (1, 2, 4)):
+        for slots in (1, 3):
+            for waiting, ok in ((cf * times * slots, True), (cf * times * slots - 1, False)):
+                pool = SimpleNamespace(queued_frames=waiting // 2, num_slots=slots)
+                retries = _PoolRetries(spec, pool_attempt, pool, None, lambda protocol, w=waiting: w - w // 2)
+                assert retries._ends_in_time(replace(job, attempt=job_attempt)) is ok, (pool_attempt, slots, waiting)
+
+
+def test_job_feed_never_steals_the_template_or_fits():
+    """A task that steals takes sequences only: the template and fits stay with the task that runs
+    them before its sequences (the fits need the template written)."""
+    from simgen.dataset.execute import JobFeed
+
+    template = replace(_job("template", 1), kind="template")
+    fit = replace(_job("zero", 1), kind="fit")
+    feed = JobFeed({"a": [template, fit, _job("s1", 40)], "b": [_job("s2", 10)]})
+    for name in "ab":
+        feed.start(name)
+    assert [j.id for j, _ in feed.take("b", 3)] == ["s2", "s1"]
+    assert [j.id for j, _ in feed.take("a", 3)] == ["template", "zero"]
 
 
 def _job(name: str, frames: int):

@@ -1,21 +1,23 @@
 """Ray execution of dataset generation (``simgen dataset generate --ray ADDRESS|local``).
 
 The first jobs (:mod:`simgen.dataset.generate`) are dealt into one task per GPU (or per CPU),
-and each retry goes to the next free one as soon as its failure is known (the task reports it at
-once, before it returns). Each task runs
+and each retry that the driver runs goes to the next free one as soon as its failure is known
+(the task reports it at once, before it returns). Each task runs
 :func:`simgen.dataset.execute.run_pool_task` in a Ray worker: one simulation pool on its own device
 (Ray's GPU resource), kept full until its jobs run out, writing each node straight into the store
 as its job ends; it returns the outcomes, and the driver alone rewrites the manifest. Two small
 actors sit on the driver's node: the round's :class:`simgen.dataset.execute.JobFeed` (the pools
 take their jobs from it as slots free up) and a meter to which every task reports its
-cloth-frames every few seconds (the driver's progress) and each failed job as it fails. The store must
-be reachable from every worker under the same name: a local folder for ``--ray local`` or a
+cloth-frames every few seconds (the driver's progress) and each failed job as it fails. The store
+must be reachable from every worker under the same name: a local folder for ``--ray local`` or a
 single machine, a shared filesystem or an fsspec URL (s3://, gs://, ...) for a cluster.
 
 Failures: a task that raises (a worker lost, a transient write error) is retried by Ray up to
 ``max_retries`` times; a retry re-simulates only the jobs whose node is not committed yet (nodes
-are first-writer-wins, so a retry never duplicates one). A diverged instance is not an exception:
-it comes back as a failed outcome and the driver re-queues it (see :mod:`simgen.dataset.generate`).
+are first-writer-wins, so a retry never duplicates one), and what it says about a job that the
+earlier run had handed to the driver does not count (:class:`_Delivered`). A diverged instance is
+not an exception: it comes back as a failed outcome, run again in its pool or by the driver (see
+:mod:`simgen.dataset.generate`).
 
 Ray is optional (``pip install 'simgen[distributed]'``) and imported only here, on first use.
 """
@@ -59,25 +61,34 @@ def _for_driver(outcome: dict) -> bool:
     return not outcome["ok"] and not outcome.get("waiting") and outcome.get("retry") != "pool"
 
 
-class _Failures:
-    """Failed outcomes already handed to the driver: each reaches it twice, from the meter while
-    its task runs and in the task's result, and counts once."""
+class _Delivered:
+    """What the driver has heard from each running task. A failed outcome comes twice, from the
+    meter as it happens and in the task's result, and counts once; and once a task has handed a
+    job to the driver (:func:`_for_driver`: the next attempt is the driver's to run), nothing more
+    from that task about the job counts: a run of the task that Ray started again after its worker
+    died simulates it again. Keys hold the store and the task name (the job ids of the garments of
+    one run repeat)."""
 
     def __init__(self) -> None:
-        self.seen: set = set()
+        self.failures: set = set()   # (location, task name, kind, id, attempt)
+        self.handed: set = set()     # (location, task name, kind, id)
 
-    def first(self, o: dict) -> bool:
-        """True the first time the failure ``o`` (kind, id, attempt) is seen."""
-        key = (o["kind"], o["id"], o["attempt"])
-        if key in self.seen:
+    def first(self, task, o: dict) -> bool:
+        """Whether outcome ``o`` of ``task`` is news to the driver (noted if so)."""
+        job = (task.location, task.name, o["kind"], o["id"])
+        if job in self.handed or (not o["ok"] and job + (o["attempt"],) in self.failures):
             return False
-        self.seen.add(key)
+        if not o["ok"]:
+            self.failures.add(job + (o["attempt"],))
+        if _for_driver(o):
+            self.handed.add(job)
         return True
 
 
 def _run_pool_task(task, deadline, meter):
     # Runs in a Ray worker: quiet Warp, then the same function as local execution, reporting its
-    # cloth-frames to the meter every PROGRESS_EVERY_S (without waiting for the actor). The deadline
+    # cloth-frames to the meter every PROGRESS_EVERY_S and each failed job as it fails (without
+    # waiting for the actor). The deadline
     # is a wall-clock time fixed by the driver, so a task that waits for a GPU or is retried keeps it.
     import time
 
@@ -96,8 +107,9 @@ def _run_pool_task(task, deadline, meter):
             meter.report.remote(task.name, frames)
 
     def failed(o: dict) -> None:
-        # At once, not with the result: the driver starts the retry on the first free GPU.
-        if _for_driver(o):
+        # Every failure at once and in order (a retry in this pool too, so that the driver knows the
+        # attempt of the next): the driver starts the retries it runs on the first free GPU.
+        if not o["ok"] and not o.get("waiting"):
             meter.fail.remote(task.name, o)
 
     result = run_pool_task(task, deadline=deadline, progress=progress, on_outcome=failed)
@@ -171,7 +183,7 @@ class RayExecutor:
         self._remote = ray.remote(max_retries=MAX_TASK_RETRIES, retry_exceptions=True, **opts)(_run_pool_task)
         self._meter = ray.remote(num_cpus=0)(_Meter).options(scheduling_strategy=self._here()).remote()
         self._pending: dict = {}   # ObjectRef -> (task, on_outcome, progress)
-        self._failures = _Failures()
+        self._delivered = _Delivered()
 
     def _here(self):
         # On the driver's node: a node that the autoscaler retires would take the actor with it.
@@ -182,8 +194,9 @@ class RayExecutor:
     def start(self, tasks, budget_s, on_outcome, progress) -> list:
         """Submit the pool tasks of one round, each a Ray task on a GPU (or a CPU) of its own,
         sharing one :class:`JobFeed` actor when there are several (a pool that ends early takes
-        the others' jobs); their handles. on_outcome(outcome) for each job once its task has ended
-        (:meth:`next`); progress(cloth_frames of the running tasks) while :meth:`next` waits."""
+        the others' jobs); their handles. on_outcome(outcome) for each job, in :meth:`next`: a
+        failure as soon as the meter has it, the rest once its task has ended; progress(cloth_frames
+        of the running tasks) while :meth:`next` waits."""
         import time
         from dataclasses import replace
 
@@ -202,27 +215,29 @@ class RayExecutor:
         return refs
 
     def next(self):
-        """(handle, result) of the next task to end, its outcomes handed to its on_outcome first;
-        while none has ended, the running tasks' cloth-frames go to progress every few seconds,
-        and (None, None) comes back as soon as one of them reports a job for the driver to run
-        again (handed to on_outcome), so that its retry can start on a free worker."""
+        """(handle, result) of the next task to end, its outcomes handed to its on_outcome first
+        (those the driver has not had yet: :class:`_Delivered`); while none has ended, the running
+        tasks' cloth-frames go to progress every few seconds, and (None, None) comes back as soon
+        as the meter has new failures of theirs (handed to on_outcome), so that the driver can
+        start their retries on a free worker."""
         ray = self.ray
         while True:
             ready, _ = ray.wait(list(self._pending), num_returns=1, timeout=PROGRESS_EVERY_S)
             if ready:
                 break
-            by_name = {task.name: (on_outcome, progress) for task, on_outcome, progress in self._pending.values()}
+            by_name = {entry[0].name: entry for entry in self._pending.values()}
             frames, failed = ray.get(self._meter.poll.remote(list(by_name)))
-            next(iter(by_name.values()))[1](frames)
-            early = [(by_name[name][0], o) for name, o in failed if name in by_name and self._failures.first(o)]
-            for on_outcome, o in early:
+            next(iter(by_name.values()))[2](frames)
+            early = [(by_name[name], o) for name, o in failed
+                     if name in by_name and self._delivered.first(by_name[name][0], o)]
+            for (_, on_outcome, _), o in early:
                 on_outcome(o)
             if early:
                 return None, None
         task, on_outcome, _ = self._pending.pop(ready[0])
         result = self._get(ready[0], task)
         for o in result["outcomes"]:
-            if not _for_driver(o) or self._failures.first(o):
+            if self._delivered.first(task, o):
                 on_outcome(o)
         return ready[0], result
 

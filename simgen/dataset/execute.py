@@ -107,7 +107,7 @@ def job_cloth_frames(spec, jobs) -> int:
 
 class JobFeed:
     """The jobs of the pool tasks of one round, handed out as their pools' slots free up: a task
-    takes its own share first, then the longest job left of any task (work stealing, longest
+    takes its own share first, then the longest sequence left of any task (work stealing, longest
     processing time first), so that the jobs started last, as the feed runs dry, are the round's
     shortest on every pool, which then end close together however fast each one's GPU turns out
     to be. A task that starts again (Ray re-runs it after its worker died) first gets back the
@@ -139,14 +139,28 @@ class JobFeed:
             if own:
                 out.append(own.popleft())
                 continue
-            fronts = [q for q in self.queues.values() if q]
-            if not fronts:
+            stolen = self._longest_sequence()
+            if stolen is None:
                 break
-            out.append(max(fronts, key=lambda q: q[0].frames).popleft())
+            out.append(stolen)
         self.taken[name] += out
         marks = [j.key in self.marked for j in out]
         self.marked -= {j.key for j in out}
         return list(zip(out, marks))
+
+    def _longest_sequence(self):
+        """Take the longest sequence job left of any task (None if none is left): never a template
+        or fit job, which the task that has them runs before its sequences (the fits need the
+        template written)."""
+        best = None
+        for q in self.queues.values():
+            for i, j in enumerate(q):
+                if j.kind == "sequence" and (best is None or j.frames > best[2].frames):
+                    best = (q, i, j)
+        if best is None:
+            return None
+        del best[0][best[1]]
+        return best[2]
 
     def left(self) -> int:
         """Jobs not taken yet, of all tasks."""
@@ -459,9 +473,9 @@ def run_pool_task(task: BatchTask, *, progress=None, on_outcome=None, deadline: 
     or dropped come back in ``not_done``, the planned cloth-frames of the dropped ones in
     ``abandoned_cloth_frames``. Jobs whose node is already committed (an earlier attempt of this
     task) are not simulated again; a failed job with attempts left runs again in the same pool
-    (:class:`_PoolRetries`). Returns {outcomes, error, not_done, abandoned_cloth_frames, slots,
-    wall, cloth_frames, step_s, write_s, write_wait, retry_cloth_frames, retry_wall}: slots: the
-    pool's; wall [s] the pool's frames (simulation, statistics, host copies); step_s [s] the
+    while the work waiting there outlasts it (:class:`_PoolRetries`). Returns {outcomes, error,
+    not_done, abandoned_cloth_frames, slots, wall, cloth_frames, step_s, write_s, write_wait,
+    retry_cloth_frames, retry_wall}: slots: the pool's; wall [s] the pool's frames (simulation, statistics, host copies); step_s [s] the
     solver's stepping within them; write_s [s] the node writes; write_wait [s] the part of them the
     simulation waited for; retry_*: the later attempts' frames and their share of the wall. A store
     write failure stops the task: ``error`` is one sentence (the store stays consistent; what was
