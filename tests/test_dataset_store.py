@@ -513,6 +513,10 @@ def test_a_retry_joins_its_pool_while_the_waiting_work_outlasts_it(tmp_path, mon
         assert _runs(calls) == [first + [f"walk_fast__b1p2@{s}"], [f"walk_fast__zero@{2 * s}"]]
     frames = spec.protocol_frames() + spec.max_frames - 1
     assert rep.retried == 1 and rep.retry_cloth_frames == frames and rep.retry_simulate_wall > 0
+    # The first pool's entry: when it began to drain, and its in-pool retries.
+    t = rep.tasks[0]
+    assert t["ready"] <= t["dry"] <= t["end"]
+    assert t["retry_cloth_frames"] == (frames if motions == 2 else 0) and (t["retry_wall"] > 0) == (motions == 2)
     ds = open_dataset(tmp_path / "s")
     a = ds.sequence("walk_fast__zero")["attrs"]["stats"]
     assert a["attempts"] == 2 and a["substeps"] == 2 * s

@@ -528,6 +528,8 @@ def run_pool_task(task: BatchTask, *, progress=None, on_outcome=None, deadline: 
         if free > 0:
             for job in source.take(free):
                 retries.submit(job)
+            if source.dry and "dry" not in clock:
+                clock["dry"] = time.time()   # the pool drains from here
 
     def accept(job, frames) -> bool:
         frame_s = pool.recent_frame_time()

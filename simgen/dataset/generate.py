@@ -76,8 +76,10 @@ class StoreReport:
     stopped: str | None = None
     reconcile: dict = field(default_factory=dict)
     # One entry per pool task, by round: {round, worker (Ray: node and GPU ids),
-    # start, ready, end [s] from the run's start (task began, pool built, last write ended),
-    # cloth_frames, slots, gpu_memory_high_bytes (Warp's pool at its fullest in the task's process
+    # start, ready, [dry,] end [s] from the run's start (task began, pool built, a freed slot
+    # first found no job left: the pool drains from there, last write ended), cloth_frames,
+    # retry_cloth_frames and retry_wall [s] (its in-pool retries: frames, share of the pool's
+    # time), slots, gpu_memory_high_bytes (Warp's pool at its fullest in the task's process
     # so far: a later task of the same process reports at least an earlier one's)}.
     tasks: list = field(default_factory=list)
 
@@ -448,6 +450,7 @@ class _Driver:
     def _task_entry(self, round_: int, r: dict) -> dict:
         since = {k: v - self.clock_start for k, v in r["clock"].items()}
         return {"round": round_, "worker": r.get("worker"), **since, "cloth_frames": r["cloth_frames"],
+                "retry_cloth_frames": r["retry_cloth_frames"], "retry_wall": r["retry_wall"],
                 "slots": r["slots"], "gpu_memory_high_bytes": r["gpu_memory_high_bytes"]}
 
     def record(self, o: dict) -> None:
