@@ -37,8 +37,8 @@ PROGRESS_EVERY_S = 2.0
 
 
 class _Meter:
-    """Cloth-frames simulated so far by each running pool task, and the failed jobs that the driver
-    is to run again (a Ray actor: the tasks report, the driver reads)."""
+    """Cloth-frames simulated so far by each running pool task, and each job that failed in one, in
+    the order they failed (a Ray actor: the tasks report, the driver reads)."""
 
     def __init__(self) -> None:
         self.frames: dict = {}
@@ -88,8 +88,8 @@ class _Delivered:
 def _run_pool_task(task, deadline, meter):
     # Runs in a Ray worker: quiet Warp, then the same function as local execution, reporting its
     # cloth-frames to the meter every PROGRESS_EVERY_S and each failed job as it fails (without
-    # waiting for the actor). The deadline
-    # is a wall-clock time fixed by the driver, so a task that waits for a GPU or is retried keeps it.
+    # waiting for the actor). The deadline is a wall-clock time fixed by the driver, so a task that
+    # waits for a GPU or is retried keeps it.
     import time
 
     import ray

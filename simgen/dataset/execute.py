@@ -475,11 +475,12 @@ def run_pool_task(task: BatchTask, *, progress=None, on_outcome=None, deadline: 
     task) are not simulated again; a failed job with attempts left runs again in the same pool
     while the work waiting there outlasts it (:class:`_PoolRetries`). Returns {outcomes, error,
     not_done, abandoned_cloth_frames, slots, wall, cloth_frames, step_s, write_s, write_wait,
-    retry_cloth_frames, retry_wall}: slots: the pool's; wall [s] the pool's frames (simulation, statistics, host copies); step_s [s] the
-    solver's stepping within them; write_s [s] the node writes; write_wait [s] the part of them the
-    simulation waited for; retry_*: the later attempts' frames and their share of the wall. A store
-    write failure stops the task: ``error`` is one sentence (the store stays consistent; what was
-    committed is kept).
+    retry_cloth_frames, retry_wall, clock}: slots: the pool's; wall [s] the pool's frames
+    (simulation, statistics, host copies); step_s [s] the solver's stepping within them; write_s
+    [s] the node writes; write_wait [s] the part of them the simulation waited for; retry_*: the
+    later attempts' frames and their share of the wall; clock: time.time() at start, ready (pool
+    built), dry (a freed slot first found no job left) and end. A store write failure stops the
+    task: ``error`` is one sentence (the store stays consistent; what was committed is kept).
     """
     from simgen.sim import SimulationJob, SimulationPool
 
@@ -648,8 +649,8 @@ class _PoolRetries:
 
     def _ends_in_time(self, job: Job) -> bool:
         """The retry of ``job`` ends before the pool runs out of waiting work: the pool frames it
-        takes (its cloth-frames at twice the substeps) are at most those the full pool needs for
-        the work still waiting. A retry started later would step on alone while the pool drains
+        takes (its cloth-frames times its substeps over the pool's) are at most those the full
+        pool needs for the work still waiting. A retry started later would step on alone while the pool drains
         (an idle slot costs a good part of a busy one: BENCHMARKS.md) and hold its GPU past the
         other pools; the driver runs it in a small pool on the first free worker instead."""
         need = job_cloth_frames(self.spec, [job]) * 2 ** (job.attempt + 1 - self.attempt)

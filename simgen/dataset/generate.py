@@ -15,8 +15,8 @@ One store per garment (docs/architecture.md, "Dataset store"). For each store th
    pool); a failed job (diverged, or a sequence with a strain outlier:
    ``execution.retry_strain_outliers``) runs again with the substep halved, up to ``max_attempts``:
    in the same pool (a slot at twice the substeps beside the others) while the work waiting there
-   outlasts it, else in a later pool, with the other failures of its attempt that are known by then, started
-   as soon as a worker is free (on Ray, while the other pools still step); a failed template
+   outlasts it, else in a later pool, with the other failures of its attempt that are known by
+   then, started as soon as a worker is free (on Ray, while the other pools still step); a failed template
    relaxation runs again alone first, since the fits need it, and fits that ended before it was
    written run again after it.
 
@@ -384,10 +384,7 @@ class _Driver:
             handle, r = self.executor.next()
             if handle is None:
                 # A running task reported failed jobs (Ray): their retries start on a free worker.
-                if report.stopped is None and error is None:
-                    queue += self.retry
-                    self.total += job_cloth_frames(spec, self.retry)
-                self.retry = []
+                self._requeue(queue, error)
                 continue
             round_, task = running.pop(handle)
             self._account(round_, task, r)
@@ -397,12 +394,17 @@ class _Driver:
             error = error or r["error"]
             if error is None and r["not_done"] and report.stopped is None:
                 report.stopped = f"time budget of {time_budget:g} s reached"
-            if report.stopped is None and error is None:
-                queue += self.retry
-                self.total += job_cloth_frames(spec, self.retry)
-            self.retry = []
+            self._requeue(queue, error)
         if error:
             raise StoreWriteError(error)
+
+    def _requeue(self, queue: list, error) -> None:
+        """Move the retries that outcomes asked for into ``queue`` (dropped once the run stops:
+        the manifest has their failures, so the next run starts them at their next attempt)."""
+        if self.report.stopped is None and error is None:
+            queue += self.retry
+            self.total += job_cloth_frames(self.spec, self.retry)
+        self.retry = []
 
     def _launch(self, queue, running, rounds, first, time_budget, t_start) -> tuple[int, bool]:
         """Start pools on the free workers for what ``queue`` holds (:func:`_next_jobs`); returns
