@@ -154,10 +154,10 @@ def main(argv=None) -> int:
             "time_split_s": {"solver_steps": r.step_wall, "simulate_other": r.simulate_wall - r.step_wall,
                              "write": r.write_wall, "write_hidden": r.write_wall - r.write_wait,
                              "other": r.wall - r.simulate_wall - r.write_wait},
-            # Jobs simulated again (diverged, or a strain outlier with execution.retry_strain_outliers)
-            # and what their later attempts cost (included above).
+            # Jobs simulated again (diverged, or a strain or depth outlier: execution.retry_*_outliers),
+            # what their later attempts cost (included above), and why and when each attempt failed.
             "retries": {"jobs": r.retried, "cloth_frames": r.retry_cloth_frames,
-                        "simulate_s": r.retry_simulate_wall},
+                        "simulate_s": r.retry_simulate_wall, "failed_attempts": r.failed_attempts},
             "output_frames_stored": out_frames,
             "stopped": r.stopped,
             # Ray: the workers (one per GPU) and each pool task's timeline [s from the run's start];

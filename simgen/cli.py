@@ -16,6 +16,7 @@ from typing import Optional, TextIO
 import typer
 
 from simgen import __version__
+from simgen.dataset.quality import DEFAULT_MAX_DEPTH, DEFAULT_MAX_STRAIN
 from simgen.errors import InputError
 
 app = typer.Typer(
@@ -934,9 +935,9 @@ def dataset_check(
     path: str = typer.Argument(..., help="The dataset store (folder or fsspec URL)."),
     stride: int = typer.Option(1, "--stride", rich_help_panel=EXPERT,
                                help="Check body penetration on every N-th frame (strain and NaN: every frame)."),
-    max_depth: float = typer.Option(1.0e-3, "--max-depth", help="Deepest allowed vertex inside the body [m].",
+    max_depth: float = typer.Option(DEFAULT_MAX_DEPTH, "--max-depth", help="Deepest allowed vertex inside the body [m].",
                                     rich_help_panel=EXPERT),
-    max_strain: float = typer.Option(1.0, "--max-strain", help="Largest allowed principal stretch - 1.",
+    max_strain: float = typer.Option(DEFAULT_MAX_STRAIN, "--max-strain", help="Largest allowed principal stretch - 1.",
                                      rich_help_panel=EXPERT),
     require_complete: bool = typer.Option(False, "--require-complete", help="Planned but missing sequences fail."),
     as_json: bool = typer.Option(False, "--json", help="Print the report as JSON."),

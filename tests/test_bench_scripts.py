@@ -62,7 +62,7 @@ def test_dataset_bench_reports_rates_split_and_retries(tmp_path, overlap):
     split = r["time_split_s"]
     assert split["solver_steps"] > 0 and split["write"] > 0
     assert split["write_hidden"] >= 0 and (overlap or split["write_hidden"] < 1e-6)
-    assert r["retries"] == {"jobs": 0, "cloth_frames": 0, "simulate_s": 0.0}
+    assert r["retries"] == {"jobs": 0, "cloth_frames": 0, "simulate_s": 0.0, "failed_attempts": []}
     assert r["thesis_tshirt_plan"]["sequences"] == 340 and r["projected_thesis_s"] > 0
 
 

@@ -451,6 +451,47 @@ def test_strain_outlier_is_retried_with_smaller_steps(tmp_path, monkeypatch, ret
     assert ds.sequence("walk_fast__zero")["attrs"]["stats"]["attempts"] == 1
 
 
+@pytest.mark.parametrize("retry", [True, False])
+def test_depth_outlier_stops_its_attempt_at_that_frame_and_is_retried(tmp_path, monkeypatch, retry):
+    """A sequence whose frames read a regular vertex 2 mm inside the body (the check's limit is 1 mm;
+    the pool's statistics are doctored here for the shaped slots) fails each attempt at its first
+    frame, without stepping the rest of its clip, until its last attempt, which is written; with
+    execution.retry_depth_outliers off its first attempt is written as it is."""
+    from simgen.sim.frame_stats import FrameStats
+
+    measure = FrameStats.measure
+
+    def deep(self, positions, betas, instances=None, host_positions=None):
+        rows = measure(self, positions, betas, instances, host_positions)
+        for row, b in zip(rows, np.asarray(betas)):
+            if row is not None and np.any(b != 0):
+                row["max_depth_regular"] = 2e-3
+        return rows
+
+    monkeypatch.setattr(FrameStats, "measure", deep)
+    spec = micro(retry_depth_outliers=retry, max_frames=3)
+    out = tmp_path / "s"
+    (rep,) = generate_dataset(spec, out=str(out))
+    assert rep.pending == 0 and not rep.failed and rep.written == 2
+    ds = open_dataset(out)
+    a = ds.sequence("walk_fast__b1p2")["attrs"]["stats"]
+    assert ds.sequence("walk_fast__zero")["attrs"]["stats"]["attempts"] == 1
+    assert a["max_penetration"] == pytest.approx(2e-3)
+    protocol, frames = spec.protocol_frames(), ds.sequence_info("walk_fast__b1p2")["frames"]
+    seqs = rep.planned_sequences
+    planned = (1 + rep.planned_fits + seqs) * protocol + seqs * (frames - 1)   # template and fits: one frame
+    if retry:
+        n = spec.max_attempts
+        assert n >= 2 and a["attempts"] == n and a["substeps"] == 2 ** (n - 1) * spec.substeps
+        assert [(f["job"], f["attempt"]) for f in rep.failed_attempts] == [("sequence:walk_fast__b1p2", k)
+                                                                           for k in range(1, n)]
+        assert all(f["message"].startswith("depth outlier: a cloth vertex 2.00 mm inside the body at frame 0")
+                   for f in rep.failed_attempts)
+        assert frames == 3 and rep.cloth_frames == planned + (n - 1) * protocol   # attempts stopped at frame 0
+    else:
+        assert a["attempts"] == 1 and rep.retried == 0 and rep.cloth_frames == planned
+
+
 def test_diverged_job_is_retried_with_smaller_steps(tmp_path, monkeypatch):
     """A failing instance is a failure of its job alone; the driver re-runs it in a later pool with
     the substep halved while the others are kept (the last job of its pool: none waits there)."""

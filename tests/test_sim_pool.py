@@ -88,6 +88,44 @@ def test_a_job_at_twice_the_substeps_shares_the_pool(inputs, alone):
     assert pool.setup.model.instance_step_divisor.numpy().tolist() == [1, 1]
 
 
+def test_a_gate_stops_a_job_at_the_frame_it_names(inputs, alone):
+    """The gate sees each animation frame's row as the job records it (strain_max: the most stretched
+    triangle, measured on the device, as the dataset check's float64 measure gives it from the
+    recorded positions); a message ends the job there as a failure, and its slot takes the next job,
+    which gives what it gives alone."""
+    from simgen.dataset.quality import triangle_rest_inverse, triangle_strain
+    from simgen.sim import SimulationFailure
+
+    body, garment, walk, squat = inputs
+    pool = SimulationPool(garment, body, 1, CFG, fps=30.0)
+    pool.submit(SimulationJob(walk, betas=[1.0, -0.5], frames=6), tag="long")
+    pool.submit(SimulationJob(squat, betas=[-1.0], frames=2), tag="short")
+    seen = []
+
+    def gate(tag, k, row):
+        seen.append((tag, k, row["strain_max"]))
+        return "past the limit" if (tag, k) == ("long", 2) else None
+
+    pool.gate = gate
+    ended = {}
+    while pool.busy or pool.queued:
+        ended.update({tag: (res, pool.frames_run) for tag, res in pool.step()})
+    protocol = CFG.relax_frames + CFG.ramp_frames + CFG.rest_frames
+    fail = ended["long"][0]
+    assert isinstance(fail, SimulationFailure)
+    assert (fail.phase, fail.frame, fail.message) == ("animate", 2, "past the limit")
+    assert ended["long"][1] == protocol + 2 and ended["short"][1] == 2 * protocol + 3   # frames 3-5 never stepped
+    assert [(t, k) for t, k, _ in seen] == [("long", 0), ("long", 1), ("long", 2), ("short", 0), ("short", 1)]
+    res = ended["short"][0]
+    assert np.abs(res.positions - alone["short"].positions).max() < 1e-4
+    rest_inv = triangle_rest_inverse(garment.vertices, garment.faces)
+    for ref, got in ((alone["long"].positions[:3], [s for t, _, s in seen if t == "long"]),
+                     (res.positions, res.stats["strain_max"])):
+        want = triangle_strain(ref, garment.faces, rest_inv).max(axis=1)
+        np.testing.assert_allclose(got, want, atol=2e-4)
+    assert np.ptp(want) > 1e-3      # frames that differ, so the comparison tells them apart
+
+
 def test_accept_refuses_jobs_and_abandon_stops_them(inputs):
     body, garment, walk, squat = inputs
     pool = SimulationPool(garment, body, 1, CFG, fps=30.0)

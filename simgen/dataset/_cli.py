@@ -273,6 +273,8 @@ def main(argv=None) -> int:
     """``python -m simgen.dataset generate|check|plan ...`` without typer/rich (for the device machine)."""
     import argparse
 
+    from simgen.dataset.quality import DEFAULT_MAX_DEPTH, DEFAULT_MAX_STRAIN
+
     p = argparse.ArgumentParser(prog="python -m simgen.dataset", description=__doc__)
     sub = p.add_subparsers(dest="cmd", required=True)
     g = sub.add_parser("generate", help="generate or resume a dataset")
@@ -295,8 +297,8 @@ def main(argv=None) -> int:
     c = sub.add_parser("check", help="check a dataset store")
     c.add_argument("path")
     c.add_argument("--stride", type=int, default=1)
-    c.add_argument("--max-depth", type=float, default=1e-3)
-    c.add_argument("--max-strain", type=float, default=1.0)
+    c.add_argument("--max-depth", type=float, default=DEFAULT_MAX_DEPTH)
+    c.add_argument("--max-strain", type=float, default=DEFAULT_MAX_STRAIN)
     c.add_argument("--require-complete", action="store_true")
     c.add_argument("--json", action="store_true")
     c.add_argument("--device", default="auto")

@@ -40,14 +40,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from simgen.dataset.quality import DEFAULT_MAX_STRAIN
+from simgen.dataset.quality import DEFAULT_MAX_DEPTH, DEFAULT_MAX_STRAIN
 from simgen.dataset.storage import STAGING, arrays_checksum
 from simgen.dataset.store import node_arrays
 
 __all__ = ["CheckReport", "check_dataset", "DEFAULT_MAX_DEPTH", "DEFAULT_MAX_STRAIN", "MAX_CROSSING_SHARE",
            "MAX_CROSSING_RUN"]
 
-DEFAULT_MAX_DEPTH = 1.0e-3     # [m] the solver's contract: no vertex more than 1 mm inside (self-intersections apart)
 MAX_CROSSING_SHARE = 0.005     # a sequence is named with crossing edges on more than this share of its frames ...
 MAX_CROSSING_RUN = 3           # ... or on more than this many frames in a row
 _POSE_CHUNK = 16

@@ -12,8 +12,8 @@ One store per garment (docs/architecture.md, "Dataset store"). For each store th
    frees up; on Ray the jobs are dealt into one pool per GPU worker
    (:mod:`simgen.dataset.distributed`);
 4. enters every outcome into the manifest (rewritten atomically every few seconds and after each
-   pool); a failed job (diverged, or a sequence with a strain outlier:
-   ``execution.retry_strain_outliers``) runs again with the substep halved, up to ``max_attempts``:
+   pool); a failed job (diverged, or a sequence with a strain or depth outlier, stopped at that
+   frame: ``execution.retry_strain_outliers``, ``retry_depth_outliers``) runs again with the substep halved, up to ``max_attempts``:
    in the same pool (a slot at twice the substeps beside the others) while the work waiting there
    outlasts it, else in a later pool, with the other failures of its attempt that are known by
    then, started as soon as a worker is free (on Ray, while the other pools still step); a failed template
@@ -68,11 +68,13 @@ class StoreReport:
     step_wall: float = 0.0      # [s] of which the solver's stepping (the rest: posing, statistics, copies)
     write_wall: float = 0.0     # [s] ground truth, statistics and store writes
     write_wait: float = 0.0     # [s] of write_wall not hidden behind the simulation
-    # Jobs simulated again (divergence or a strain outlier), and what the pools of those later
-    # attempts cost: their cloth-frames (also in cloth_frames) and simulation wall [s].
+    # Jobs simulated again (divergence, a strain or depth outlier), and what the pools of those later
+    # attempts cost: their cloth-frames (also in cloth_frames) and simulation wall [s]; one entry
+    # per such failed attempt: {job, attempt, message, at [s] from the run's start}.
     retried: int = 0
     retry_cloth_frames: int = 0
     retry_simulate_wall: float = 0.0
+    failed_attempts: list = field(default_factory=list)
     stopped: str | None = None
     reconcile: dict = field(default_factory=dict)
     # One entry per pool task, by round: {round, worker (Ray: node and GPU ids),
@@ -485,6 +487,8 @@ class _Driver:
             else:
                 self.retry.append(again)
             report.retried += 1
+            report.failed_attempts.append({"job": job.key, "attempt": job.attempt, "message": o["message"],
+                                           "at": time.time() - self.clock_start})
         else:
             report.failed[job.key] = o["message"]
         # Rewritten every few seconds, not after every job (a large manifest on an object store

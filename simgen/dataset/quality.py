@@ -9,9 +9,11 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["triangle_rest_inverse", "triangle_strain", "strain_summary", "body_penetration", "DEFAULT_MAX_STRAIN"]
+__all__ = ["triangle_rest_inverse", "triangle_strain", "strain_summary", "body_penetration", "DEFAULT_MAX_STRAIN",
+           "DEFAULT_MAX_DEPTH"]
 
 DEFAULT_MAX_STRAIN = 1.0  # [-] largest principal stretch - 1 of a healthy frame (the check's limit, the retry's trigger)
+DEFAULT_MAX_DEPTH = 1.0e-3  # [m] the solver's contract: no vertex more than 1 mm inside (self-intersections apart)
 STRAIN_CHUNK_FRAMES = 8   # frames per pass of triangle_strain (its temporaries stay a few MB)
 
 

@@ -69,6 +69,7 @@ Layout (every table and field optional except ``garment.names``)::
     overlap_writes = true                     # write each finished job in the background while the pool steps
     retry_strain_outliers = true              # a sequence with a triangle past the check's strain limit is
                                               # simulated again with the substep halved (max_attempts)
+    retry_depth_outliers = true               # the same for a cloth vertex past the check's depth limit
 
     [output]
     path = "datasets/thesis-tshirt"           # default of --out (relative to the working folder)
@@ -156,7 +157,8 @@ _SECTIONS = {
     "solver": _SPEC_SOLVER + _SIMULATION_FIELDS["solver"],          # + solver_settings()
     "protocol": _SIMULATION_FIELDS["protocol"] + ("store_rest_frames",),
     "smoothing": ("method", "iterations", "lambda", "mu", "boundary"),
-    "execution": ("batch_size", "max_attempts", "chunk_frames", "overlap_writes", "retry_strain_outliers"),
+    "execution": ("batch_size", "max_attempts", "chunk_frames", "overlap_writes", "retry_strain_outliers",
+                  "retry_depth_outliers"),
     "output": ("path",),
 }
 
@@ -222,6 +224,7 @@ class DatasetSpec:
     chunk_frames: int = 32
     overlap_writes: bool = True
     retry_strain_outliers: bool = True
+    retry_depth_outliers: bool = True
     output: str | None = None
     source: str = "<dict>"
     base_dir: str = "."
@@ -389,7 +392,8 @@ class DatasetSpec:
         """A copy with CLI overrides applied and validated (None values are ignored).
 
         Keys: device, batch_size, substeps, max_frames, motions (list of library names/patterns),
-        shapes (list of shape ids to keep), material, output, overlap_writes, retry_strain_outliers.
+        shapes (list of shape ids to keep), material, output, overlap_writes, retry_strain_outliers,
+        retry_depth_outliers.
         """
         d = copy.copy(self)
         d.solver = copy.deepcopy(self.solver)
@@ -410,7 +414,7 @@ class DatasetSpec:
                 d.shapes_generator = "list"
                 d.shape_list = tuple(known[s] for s in value)
             elif key in ("device", "batch_size", "substeps", "max_frames", "material", "output", "overlap_writes",
-                         "retry_strain_outliers"):
+                         "retry_strain_outliers", "retry_depth_outliers"):
                 setattr(d, key, value)
             else:
                 raise InputError(f"unknown spec override {key!r}")
@@ -679,6 +683,7 @@ def parse_spec(doc: dict, *, source: str = "<dict>", base_dir: str | Path = ".",
     spec.chunk_frames = e.get("chunk_frames", 32, int, low=1)
     spec.overlap_writes = e.get("overlap_writes", True, bool)
     spec.retry_strain_outliers = e.get("retry_strain_outliers", True, bool)
+    spec.retry_depth_outliers = e.get("retry_depth_outliers", True, bool)
 
     o = _Reader(source, _table(source, doc, "output"), "output.")
     spec.output = o.get("path", None, str)
@@ -703,7 +708,7 @@ def _validate_scalars(spec: DatasetSpec, where: str) -> None:
         if isinstance(v, bool) or not isinstance(v, int) or v < low:
             raise InputError(f"{where}: field '{name}' must be an integer >= {low}, got {v!r}")
     simulation_settings()["substeps"].check(spec.substeps, f"{where}: field 'solver.substeps'")
-    for name in ("overlap_writes", "retry_strain_outliers"):
+    for name in ("overlap_writes", "retry_strain_outliers", "retry_depth_outliers"):
         if not isinstance(getattr(spec, name), bool):
             raise InputError(f"{where}: field 'execution.{name}' must be true or false, "
                              f"got {getattr(spec, name)!r}")

@@ -73,7 +73,10 @@ class SimulationPool:
     :meth:`submit` queues jobs; :meth:`step` fills idle slots from the queue (first in, first out,
     among the jobs whose material an idle slot has), steps one frame and returns the jobs that ended.
     ``accept``: None, or a callable(tag, cloth_frames) -> bool asked before a queued job starts; a job
-    it refuses leaves the queue and its tag goes to ``refused`` (e.g. a time budget).
+    it refuses leaves the queue and its tag goes to ``refused`` (e.g. a time budget). ``gate``: None,
+    or a callable(tag, k, row) -> str | None asked as each job records animation frame k with its
+    row of :data:`FRAME_STAT_KEYS`; a message ends the job there as a :class:`SimulationFailure`
+    (e.g. a dataset's quality limits, so that a retry starts at once instead of after the clip).
     """
 
     def __init__(self, garment, body, slots: int, config=None, *, fps: float | None = None,
@@ -95,6 +98,7 @@ class SimulationPool:
         self._running: dict[int, _Running] = {}
         self._clips: dict = {}
         self.accept = None
+        self.gate = None
         self.refused: list = []
         self._recent: deque = deque(maxlen=32)   # [s] wall time of the last frames
         self.frames_run = 0          # frames stepped
@@ -218,6 +222,11 @@ class SimulationPool:
             if run.cursor == run.schedule.protocol_frames:           # the clip's frame 0: no step
                 run.recorder.record_start(rows[slot], xi, bi)
                 run.cursor += 1
+                phase, k = "animate", 0
+            verdict = None if self.gate is None or phase != "animate" else self.gate(run.tag, k, rows[slot])
+            if verdict is not None:        # the job fails here; the rest of its clip is not stepped
+                done.append((slot, run.tag, run.recorder.failure(phase, k, verdict)))
+                continue
             if run.cursor >= len(run.schedule.frames):
                 done.append((slot, run.tag, run.recorder.result()))
         wall = time.perf_counter() - t_frame
