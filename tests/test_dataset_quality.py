@@ -53,3 +53,39 @@ def test_strain_is_zero_at_rest_and_under_rigid_motion_and_one_frame_works():
     assert s.shape == (len(faces),) and s[0] > 0.3 - 1e-12
     untouched = [i for i, f in enumerate(faces) if f0[1] not in f]
     assert np.abs(s[untouched]).max() < 1e-12
+
+
+def test_the_device_stretch_of_the_frame_statistics_is_this_measure_and_skips_pinched_triangles():
+    """simgen.sim.frame_stats.triangle_stretch_max (the pool's per-frame stretch, float32 on the
+    device) on two copies of a sheet under different linear maps: each copy's largest stretch is
+    triangle_strain's, and with one vertex of the most stretched triangle at a body
+    self-intersection the regular maximum is the largest of the other triangles."""
+    import warp as wp
+
+    from simgen.sim.frame_stats import triangle_stretch_max
+
+    rng = np.random.default_rng(5)
+    x, faces = _sheet()
+    inv = triangle_rest_inverse(x, faces)
+    n, f = len(x), len(faces)
+    frames = np.stack([x @ (np.eye(3) + 0.3 * rng.normal(size=(3, 3))).T for _ in range(2)])   # (2, V, 3)
+    frames[1, 14] += [0.05, 0.03, 0.02]      # a spike: the triangles around vertex 14 stretch most
+    want = triangle_strain(frames, faces, inv)                                                    # (2, F)
+    assert 14 in faces[int(np.argmax(want[1]))]
+    self_hit = np.zeros(2 * n, dtype=np.int32)
+    self_hit[n + 14] = 1                     # copy 1's most stretched triangles are pinched
+    pinched = np.any(self_hit[n:][faces] != 0, axis=1)
+    dev = "cpu"
+    arr = lambda a, t: wp.array(np.ascontiguousarray(a), dtype=t, device=dev)   # noqa: E731
+    out, out_regular = wp.zeros(2, dtype=wp.float32, device=dev), wp.zeros(2, dtype=wp.float32, device=dev)
+    out.fill_(-1.0)
+    out_regular.fill_(-1.0)
+    wp.launch(triangle_stretch_max, dim=2 * f, device=dev,
+              inputs=[arr(frames.reshape(-1, 3).astype(np.float32), wp.vec3),
+                      arr(np.concatenate([faces, faces + n]).astype(np.int32), wp.int32),
+                      arr(np.concatenate([inv, inv]).astype(np.float32), wp.mat22),
+                      arr(np.repeat([0, 1], f).astype(np.int32), wp.int32), arr(np.ones(2, np.int32), wp.int32),
+                      arr(self_hit, wp.int32)], outputs=[out, out_regular])
+    np.testing.assert_allclose(out.numpy(), want.max(axis=1), rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(out_regular.numpy(), [want[0].max(), want[1][~pinched].max()], rtol=1e-5, atol=1e-6)
+    assert want[1][~pinched].max() < want[1].max() - 0.1

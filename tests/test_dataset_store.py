@@ -420,76 +420,59 @@ def _runs(pools) -> list:
     return [ids for _, ids in pools]
 
 
-@pytest.mark.parametrize("retry", [True, False])
-def test_strain_outlier_is_retried_with_smaller_steps(tmp_path, monkeypatch, retry):
-    """A sequence whose first attempt has a frame with a triangle past the check's strain limit (one
-    vertex thrown 20 cm here) is simulated again with the substep halved, and the store passes the
-    check; with execution.retry_strain_outliers off it is written as it is and the check fails."""
-
-    def spiky(job, r):
-        if job.id == "walk_fast__b1p2" and job.attempt == 1:
-            r.positions[-1, 0] += np.array([0.2, 0.0, 0.0], dtype=r.positions.dtype)
-        return r
-
-    _patch_pools(monkeypatch, spiky)
-    spec = micro(retry_strain_outliers=retry)
-    out = tmp_path / "s"
-    (rep,) = generate_dataset(spec, out=str(out))
-    assert rep.pending == 0 and not rep.failed and rep.written == 2
-    ds = open_dataset(out)
-    a = ds.sequence("walk_fast__b1p2")["attrs"]["stats"]
-    report = check_dataset(out)
-    if retry:
-        assert a["attempts"] == 2 and a["substeps"] == 2 * spec.substeps and a["strain_max"] < 1.0
-        assert report.passed, report.format()
-        frames = spec.protocol_frames() + ds.sequence_info("walk_fast__b1p2")["frames"] - 1  # frame 0: no step
-        assert rep.retried == 1 and rep.retry_cloth_frames == frames and rep.retry_simulate_wall > 0
-    else:
-        assert a["attempts"] == 1 and a["strain_max"] > 1.0
-        assert rep.retried == 0 and rep.retry_cloth_frames == 0
-        assert "strain" in [p["check"] for p in report.to_dict()["problems"]]
-    assert ds.sequence("walk_fast__zero")["attrs"]["stats"]["attempts"] == 1
+_OUTLIERS = {   # the statistics a shaped slot reads on every frame, and the failure they make
+    "depth": ({"max_depth_regular": 2e-3}, "depth outlier: a cloth vertex 2.00 mm inside the body at frame 0"),
+    "strain": ({"strain_max": 1.2, "strain_max_regular": 1.2}, "strain outlier: a triangle stretched 120% at frame 0"),
+    "pinched": ({"strain_max": 1.5, "strain_max_regular": 0.5}, None),   # at a body self-intersection only
+}
 
 
-@pytest.mark.parametrize("retry", [True, False])
-def test_depth_outlier_stops_its_attempt_at_that_frame_and_is_retried(tmp_path, monkeypatch, retry):
-    """A sequence whose frames read a regular vertex 2 mm inside the body (the check's limit is 1 mm;
+@pytest.mark.parametrize("case,retry", [("depth", True), ("depth", False), ("strain", True), ("strain", False),
+                                        ("pinched", True)])
+def test_an_outlier_stops_its_attempt_at_that_frame_and_is_retried(tmp_path, monkeypatch, case, retry):
+    """A sequence whose frames fail the check's rules (a regular vertex 2 mm inside the body, the limit
+    being 1 mm; a triangle away from body self-intersections stretched 120%, the limit being 100%:
     the pool's statistics are doctored here for the shaped slots) fails each attempt at its first
     frame, without stepping the rest of its clip, until its last attempt, which is written; with
-    execution.retry_depth_outliers off its first attempt is written as it is."""
+    execution.retry_depth_outliers / retry_strain_outliers off its first attempt is written as it
+    is, and so is a stretch at body self-intersections, which the check counts apart and a smaller
+    substep cannot undo."""
     from simgen.sim.frame_stats import FrameStats
 
     measure = FrameStats.measure
+    doctored, message = _OUTLIERS[case]
 
-    def deep(self, positions, betas, instances=None, host_positions=None):
+    def outlying(self, positions, betas, instances=None, host_positions=None):
         rows = measure(self, positions, betas, instances, host_positions)
         for row, b in zip(rows, np.asarray(betas)):
             if row is not None and np.any(b != 0):
-                row["max_depth_regular"] = 2e-3
+                row.update(doctored)
         return rows
 
-    monkeypatch.setattr(FrameStats, "measure", deep)
-    spec = micro(retry_depth_outliers=retry, max_frames=3)
+    monkeypatch.setattr(FrameStats, "measure", outlying)
+    switch = "retry_strain_outliers" if case != "depth" else "retry_depth_outliers"
+    spec = micro(max_frames=3, **{switch: retry})
     out = tmp_path / "s"
     (rep,) = generate_dataset(spec, out=str(out))
     assert rep.pending == 0 and not rep.failed and rep.written == 2
     ds = open_dataset(out)
     a = ds.sequence("walk_fast__b1p2")["attrs"]["stats"]
     assert ds.sequence("walk_fast__zero")["attrs"]["stats"]["attempts"] == 1
-    assert a["max_penetration"] == pytest.approx(2e-3)
     protocol, frames = spec.protocol_frames(), ds.sequence_info("walk_fast__b1p2")["frames"]
     seqs = rep.planned_sequences
     planned = (1 + rep.planned_fits + seqs) * protocol + seqs * (frames - 1)   # template and fits: one frame
-    if retry:
+    if retry and message is not None:
         n = spec.max_attempts
         assert n >= 2 and a["attempts"] == n and a["substeps"] == 2 ** (n - 1) * spec.substeps
         assert [(f["job"], f["attempt"]) for f in rep.failed_attempts] == [("sequence:walk_fast__b1p2", k)
                                                                            for k in range(1, n)]
-        assert all(f["message"].startswith("depth outlier: a cloth vertex 2.00 mm inside the body at frame 0")
-                   for f in rep.failed_attempts)
+        assert all(f["message"].startswith(message) for f in rep.failed_attempts)
         assert frames == 3 and rep.cloth_frames == planned + (n - 1) * protocol   # attempts stopped at frame 0
+        assert rep.retried == n - 1 and rep.retry_cloth_frames > 0
     else:
         assert a["attempts"] == 1 and rep.retried == 0 and rep.cloth_frames == planned
+    if case == "depth":
+        assert a["max_penetration"] == pytest.approx(2e-3)
 
 
 def test_diverged_job_is_retried_with_smaller_steps(tmp_path, monkeypatch):

@@ -22,8 +22,8 @@ longer than the retry takes, and its failed attempt's outcome then says ``retry:
 a small pool that the driver starts on the first free worker (a retry left to step on alone in a
 draining pool pays for the idle slots around it: BENCHMARKS.md). A sequence with a
 strain or depth outlier (a triangle or a vertex past the check's limits on some frame) is such a
-failure too while attempts are left (:func:`_outlier`); the pool stops the attempt at that frame
-(:func:`_outlier_gate`), so its retry starts at once. The template is not retried in the pool (the fits
+failure too while attempts are left: the pool stops the attempt at that frame (:func:`_outlier`),
+so its retry starts at once. The template is not retried in the pool (the fits
 need it written first: the driver runs its retry alone, :mod:`simgen.dataset.generate`).
 """
 
@@ -253,49 +253,33 @@ def _frame_stats(result, faces, rest_inverse) -> tuple[dict, dict]:
     return per_frame, summary
 
 
-def _outlier(spec, job: Job, strain, depth, first: int = 0) -> str | None:
-    """Why an attempt of ``job`` is to be simulated again, or None.
+def _outlier(spec, job: Job, k: int, row: dict) -> str | None:
+    """Why an attempt of ``job`` is to be simulated again at its clip's frame ``k``, or None (the
+    pool's gate, :attr:`simgen.sim.SimulationPool.gate`, asks as each frame is recorded).
 
-    A sequence with a frame where one triangle is stretched past the strain limit of ``simgen
-    dataset check`` (``execution.retry_strain_outliers``) or a regular cloth vertex lies deeper
-    inside the body than its depth limit (``execution.retry_depth_outliers``) is a failed attempt
-    while attempts are left: such spikes come from a vertex the step left deep inside a fast limb,
-    and a smaller substep makes that intrusion smaller. The last attempt is written whatever its
-    frames (the check reports them). Strain outliers at body self-intersections, which the check
-    counts apart, are retried too: telling them apart needs the body re-posed.
-
-    strain [-], depth [m]: (T,) per frame, the largest triangle stretch - 1 and the deepest regular
-    vertex (``max_depth_regular``) of the clip's frames ``first``, ``first + 1``, ...
+    A sequence with a frame that fails ``simgen dataset check``'s rules while attempts are left: a
+    triangle away from body self-intersections stretched past the strain limit
+    (``execution.retry_strain_outliers``; row ``strain_max_regular``, measured on the device), or
+    a regular cloth vertex deeper inside the body than the depth limit
+    (``execution.retry_depth_outliers``; ``max_depth_regular``). Such spikes come from a vertex the
+    step left deep inside a fast limb, and a smaller substep makes that intrusion smaller; the
+    attempt stops at that frame, so that its retry starts at once instead of after the rest of its
+    clip. Outliers at body self-intersections, which the check counts apart and a smaller substep
+    cannot undo, are not retried. The last attempt is written whatever its frames (the check
+    reports them).
     """
     from simgen.dataset.quality import DEFAULT_MAX_DEPTH, DEFAULT_MAX_STRAIN
 
     if job.kind != "sequence" or job.attempt >= spec.max_attempts:
         return None
-    for on, values, limit, what in ((spec.retry_strain_outliers, strain, DEFAULT_MAX_STRAIN, "strain"),
-                                    (spec.retry_depth_outliers, depth, DEFAULT_MAX_DEPTH, "depth")):
-        v = np.asarray(values, dtype=np.float64).reshape(-1)
-        if not on or v.size == 0 or not v.max() > limit:
-            continue
-        k = int(np.argmax(v))
-        over = f"; {int(np.sum(v > limit))} frames over it" if v.size > 1 else ""
-        if what == "strain":
-            return (f"strain outlier: a triangle stretched {100 * v[k]:.0f}% at frame {first + k} (the check's limit "
-                    f"is {100 * limit:g}%{over})")
-        return (f"depth outlier: a cloth vertex {1e3 * v[k]:.2f} mm inside the body at frame {first + k} (the "
-                f"check's limit is {1e3 * limit:g} mm{over})")
+    strain, depth = float(row["strain_max_regular"]), float(row["max_depth_regular"])
+    if spec.retry_strain_outliers and strain > DEFAULT_MAX_STRAIN:
+        return (f"strain outlier: a triangle stretched {100 * strain:.0f}% at frame {k} (the check's limit is "
+                f"{100 * DEFAULT_MAX_STRAIN:g}%)")
+    if spec.retry_depth_outliers and depth > DEFAULT_MAX_DEPTH:
+        return (f"depth outlier: a cloth vertex {1e3 * depth:.2f} mm inside the body at frame {k} (the check's "
+                f"limit is {1e3 * DEFAULT_MAX_DEPTH:g} mm)")
     return None
-
-
-def _outlier_gate(spec):
-    """The pool's gate (:attr:`simgen.sim.SimulationPool.gate`): :func:`_outlier` on each frame as
-    it is recorded, so that an attempt fails at its first frame past the limits and its retry starts
-    while the pool is still full (the solver's float32 stretch there; the write checks every frame
-    again in float64)."""
-
-    def gate(job: Job, k: int, row: dict) -> str | None:
-        return _outlier(spec, job, row["strain_max"], row["max_depth_regular"], first=k)
-
-    return gate
 
 
 def _rest_frames(result) -> np.ndarray:
@@ -343,9 +327,6 @@ class NodeWriter:
         if msg is not None:
             return {**_outcome_base(job), "ok": False, "message": msg}
         per_frame, summary = _frame_stats(res, self.faces, self.rest_inv)
-        outlier = _outlier(self.spec, job, per_frame["strain_max"], per_frame["max_depth_regular"])
-        if outlier is not None:
-            return {**_outcome_base(job), "ok": False, "message": outlier}
         summary.update(wall_time=float(res.metadata.get("wall_share", res.metadata["wall_time"])),
                        batch_size=self.slots, attempts=job.attempt, substeps=int(res.metadata["substeps"]),
                        device=str(self.config.device))
@@ -564,7 +545,7 @@ def run_pool_task(task: BatchTask, *, progress=None, on_outcome=None, deadline: 
         return time.time() + frames * (frame_s + waited) <= deadline
 
     pool.accept = accept
-    pool.gate = _outlier_gate(spec)
+    pool.gate = functools.partial(_outlier, spec)
     abandoned: list = []
     clock["ready"] = time.time()
     try:

@@ -46,30 +46,40 @@ FRAME_STAT_KEYS = (
     "min_height",                 # [m] the lowest garment vertex (the floor: SolverConfig.floor)
     "crossing_edges",             # garment edges through a garment triangle (simgen.garment.crossings)
     "strain_max",                 # [-] the most stretched triangle's largest principal stretch - 1
-)                                 #     (simgen.dataset.quality.triangle_strain's measure, float32 here)
+                                  #     (simgen.dataset.quality.triangle_strain's measure, float32 here)
+    "strain_max_regular",         # [-] the same over triangles with no vertex at a body self-intersection
+)                                 #     (the dataset check's strain rule)
 
 
 @wp.kernel(enable_backward=False)
 def triangle_stretch_max(x: wp.array(dtype=wp.vec3), triangles: wp.array(dtype=wp.int32, ndim=2),
                          inv_rest: wp.array(dtype=wp.mat22), tri_instance: wp.array(dtype=wp.int32),
-                         measured: wp.array(dtype=wp.int32), out: wp.array(dtype=wp.float32)):
-    """out[i] = max over instance i's triangles of sqrt(largest eigenvalue of F^T F) - 1, F = Ds Dm^-1
-    (3 x 2), for the instances with measured[i] != 0 (out reset to -1 before: the least a stretch can be)."""
+                         measured: wp.array(dtype=wp.int32), self_hit: wp.array(dtype=wp.int32),
+                         out: wp.array(dtype=wp.float32), out_regular: wp.array(dtype=wp.float32)):
+    """For the instances i with measured[i] != 0: out[i] = max over i's triangles of sqrt(largest
+    eigenvalue of F^T F) - 1, F = Ds Dm^-1 (3 x 2); out_regular[i] the same over the triangles with
+    no vertex at a body self-intersection (self_hit: the module doc's rule). Both reset to -1 before
+    (the least a stretch can be)."""
     t = wp.tid()
     i = tri_instance[t]
     if measured[i] == 0:
         return
-    x0 = x[triangles[t, 0]]
-    e1 = x[triangles[t, 1]] - x0
-    e2 = x[triangles[t, 2]] - x0
+    a0 = triangles[t, 0]
+    a1 = triangles[t, 1]
+    a2 = triangles[t, 2]
+    x0 = x[a0]
+    e1 = x[a1] - x0
+    e2 = x[a2] - x0
     r = inv_rest[t]
     f0 = e1 * r[0, 0] + e2 * r[1, 0]      # F's columns
     f1 = e1 * r[0, 1] + e2 * r[1, 1]
     a = wp.dot(f0, f0)
     b = wp.dot(f0, f1)
     c = wp.dot(f1, f1)
-    lam = 0.5 * (a + c) + wp.sqrt(wp.max(0.25 * (a - c) * (a - c) + b * b, 0.0))
-    wp.atomic_max(out, i, wp.sqrt(lam) - 1.0)
+    stretch = wp.sqrt(0.5 * (a + c) + wp.sqrt(wp.max(0.25 * (a - c) * (a - c) + b * b, 0.0))) - 1.0
+    wp.atomic_max(out, i, stretch)
+    if self_hit[a0] == 0 and self_hit[a1] == 0 and self_hit[a2] == 0:
+        wp.atomic_max(out_regular, i, stretch)
 
 
 class FrameStats:
@@ -115,18 +125,23 @@ class FrameStats:
             raise ValueError("every instance of the model must be a copy of the garment")
         self.crossings = CrossingCounter(garment.faces, nvg, str(dev), instances=ni)
         self.strain_max = wp.zeros(ni, dtype=wp.float32, device=dev)
+        self.strain_max_regular = wp.zeros(ni, dtype=wp.float32, device=dev)
         self.measured = wp.zeros(ni, dtype=wp.int32, device=dev)
 
-    def _strain_max(self, positions: wp.array, chosen) -> np.ndarray:
-        """(N,) the largest triangle stretch - 1 of each instance in ``chosen`` (others: -1)."""
+    def _strain_max(self, positions: wp.array, chosen) -> tuple[np.ndarray, np.ndarray]:
+        """(N,) each instance's largest triangle stretch - 1, over all its triangles and over those
+        away from body self-intersections (``self_hit`` as classified this frame); -1 for the
+        instances not in ``chosen``."""
         flags = np.zeros(len(self.winding_meshes), dtype=np.int32)
         flags[list(chosen)] = 1
         self.measured.assign(flags)
         self.strain_max.fill_(-1.0)
+        self.strain_max_regular.fill_(-1.0)
         m = self.model
         wp.launch(triangle_stretch_max, dim=m.num_triangles, device=m.device,
-                  inputs=[positions, m.triangles, m.tri_inv_rest, m.tri_instance, self.measured, self.strain_max])
-        return self.strain_max.numpy()
+                  inputs=[positions, m.triangles, m.tri_inv_rest, m.tri_instance, self.measured, self.self_hit],
+                  outputs=[self.strain_max, self.strain_max_regular])
+        return self.strain_max.numpy(), self.strain_max_regular.numpy()
 
     def measure(self, positions: wp.array, betas: np.ndarray, instances=None, host_positions=None) -> list[dict | None]:
         """One dict per instance (keys: the penetration and placement entries of FRAME_STAT_KEYS);
@@ -162,12 +177,12 @@ class FrameStats:
         dist, depth, inside, self_hit = (a.numpy().reshape(ni, nvg)[k]
                                          for a in (self.distance, self.depth, self.inside, self.self_hit))
         crossing = self.crossings.count_points(positions)[k]
-        strain = self._strain_max(positions, chosen)[k]
+        strain, strain_regular = (a[k] for a in self._strain_max(positions, chosen))
         regular = (inside != 0) & (self_hit == 0)
         cols = dict(max_depth=depth.max(axis=1, initial=0.0),
                     max_depth_regular=np.where(regular, depth, -np.inf).max(axis=1, initial=0.0),
                     inside_count=inside.sum(axis=1), self_intersection_count=self_hit.sum(axis=1),
-                    crossing_edges=crossing, strain_max=strain,
+                    crossing_edges=crossing, strain_max=strain, strain_max_regular=strain_regular,
                     **placement_rows(x, lbs, up, dist, self.reference.support))
         cols["inside_share"] = cols["inside_count"] / max(nvg, 1)
         ints = ("inside_count", "self_intersection_count", "crossing_edges")
