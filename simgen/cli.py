@@ -935,12 +935,15 @@ def dataset_check(
     path: str = typer.Argument(..., help="The dataset store (folder or fsspec URL)."),
     stride: int = typer.Option(1, "--stride", rich_help_panel=EXPERT,
                                help="Check body penetration on every N-th frame (strain and NaN: every frame)."),
-    max_depth: float = typer.Option(DEFAULT_MAX_DEPTH, "--max-depth", help="Deepest allowed vertex inside the body [m].",
-                                    rich_help_panel=EXPERT),
-    max_strain: float = typer.Option(DEFAULT_MAX_STRAIN, "--max-strain", help="Largest allowed principal stretch - 1.",
-                                     rich_help_panel=EXPERT),
+    max_depth: float = typer.Option(DEFAULT_MAX_DEPTH, "--max-depth", rich_help_panel=EXPERT,
+                                    help="Deepest allowed vertex inside the body [m]."),
+    max_strain: float = typer.Option(DEFAULT_MAX_STRAIN, "--max-strain", rich_help_panel=EXPERT,
+                                     help="Largest allowed principal stretch - 1."),
     require_complete: bool = typer.Option(False, "--require-complete", help="Planned but missing sequences fail."),
     as_json: bool = typer.Option(False, "--json", help="Print the report as JSON."),
+    workers: int = typer.Option(0, "--workers", min=0, rich_help_panel=EXPERT,
+                                help="Processes checking the sequences (0: one per core, at most 16 and one per 16 "
+                                     "sequences; the report is the same)."),
 ) -> None:
     """NaN/inf, cloth inside the posed body, strain outliers, the garment off the body, missing frames, manifest
     vs store (exit 1 on a problem); cloth through itself is counted on every frame and reported."""
@@ -948,7 +951,7 @@ def dataset_check(
 
     _warp_setup()
     code = run_check(path, stride=stride, max_depth=max_depth, max_strain=max_strain,
-                     require_complete=require_complete, as_json=as_json, progress_factory=_progress)
+                     require_complete=require_complete, as_json=as_json, progress_factory=_progress, workers=workers)
     if code:
         raise typer.Exit(code)
 

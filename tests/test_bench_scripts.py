@@ -138,3 +138,20 @@ def test_bench_frame_stats_host_times_placement_and_strain(tmp_path):
     assert sizes["garment"] == "tshirt_1k" and 0 < sizes["support_vertices"] < sizes["vertices"]
     assert [r["slots"] for r in result["runs"]] == [3, 1] and all(r["placement_ms"] > 0 for r in result["runs"])
     assert result["sizes"]["sequence_frames"] == 3 and result["strain_summary_s"] > 0
+
+
+def test_check_bench_times_one_and_several_workers_with_the_same_report(tmp_path):
+    sys.path.insert(0, str(REPO / "scripts"))
+    try:
+        import check_bench
+        import dataset_bench
+    finally:
+        sys.path.remove(str(REPO / "scripts"))
+    store = tmp_path / "store"
+    assert dataset_bench.main(["--spec", "tiny", "--device", "cpu", "--out", str(store), "--max-sequences", "2"]) == 0
+    out = tmp_path / "check.json"
+    assert check_bench.main([str(store), "--workers", "1,2", "--device", "cpu", "--json", str(out)]) == 0
+    r = json.loads(out.read_text())
+    assert r["benchmark"] == "dataset_check" and r["sizes"]["sequences"] == 2 and r["commit"]
+    assert [run["workers"] for run in r["runs"]] == [1, 2, 1]
+    assert all(run["passed"] and run["same_report"] and run["wall_s"] > 0 for run in r["runs"])

@@ -205,6 +205,29 @@ def test_reader_api(tiny):
         ds.sequence_ids("validation")
 
 
+def test_check_in_worker_processes_reports_the_same(tiny, tmp_path, monkeypatch):
+    """`check --workers 2` (shares of one sequence here, so that both workers take several) gives
+    the report of one process, problems and warnings in the same order, on a store with a
+    damaged sequence between sound ones; progress climbs to the total."""
+    import shutil
+
+    import simgen.dataset.check as check
+
+    d = tmp_path / "damaged"
+    shutil.copytree(tiny["out"], d)
+    chunks = sorted((d / "sequences/jumping_jacks__zero/garment_vertices/c").rglob("*"))
+    next(c for c in chunks if c.is_file()).unlink()
+    serial = check_dataset(d, workers=1)
+    monkeypatch.setattr(check, "_SHARE", 1)
+    seen = []
+    parallel = check_dataset(d, workers=2, progress=lambda n, total: seen.append((n, total)))
+    assert not serial.passed and any(p["node"] == "sequences/jumping_jacks__zero" for p in serial.problems)
+    assert parallel.to_dict() == serial.to_dict()
+    assert seen[-1] == (4, 4) and seen == sorted(seen)
+    with pytest.raises(InputError, match="--workers"):
+        check_dataset(d, workers=-1)
+
+
 def test_check_passes_then_finds_damage(tiny, tmp_path, monkeypatch):
     import shutil
 

@@ -146,14 +146,17 @@ def _generate_softtissue(spec_arg, *, out, ray, max_sequences, time_budget, repo
     return 1 if r.failed else 0
 
 
-def run_check(path, *, stride=1, max_depth=1e-3, max_strain=1.0, require_complete=False, as_json=False,
-              progress_factory=None, device="auto") -> int:
+def run_check(path, *, stride=1, max_depth=None, max_strain=None, require_complete=False, as_json=False,
+              progress_factory=None, device="auto", workers=0) -> int:
     from simgen.dataset.check import check_dataset
+    from simgen.dataset.quality import DEFAULT_MAX_DEPTH, DEFAULT_MAX_STRAIN
     from simgen.dataset.softtissue import check_softtissue_store, is_softtissue_store
 
     make = progress_factory or _plain_progress
+    max_depth = DEFAULT_MAX_DEPTH if max_depth is None else max_depth
+    max_strain = DEFAULT_MAX_STRAIN if max_strain is None else max_strain
     if is_softtissue_store(path):
-        if (stride, max_depth, max_strain) != (1, 1e-3, 1.0):
+        if (stride, max_depth, max_strain) != (1, DEFAULT_MAX_DEPTH, DEFAULT_MAX_STRAIN):
             raise InputError(f"{path} is a soft-tissue store: --stride, --max-depth and --max-strain check cloth")
         bar, update = make("checking", 1)
         with bar:
@@ -163,7 +166,7 @@ def run_check(path, *, stride=1, max_depth=1e-3, max_strain=1.0, require_complet
     bar, update = make("checking", 1)
     with bar:
         rep = check_dataset(path, stride=stride, max_depth=max_depth, max_strain=max_strain,
-                            require_complete=require_complete, progress=update, device=device)
+                            require_complete=require_complete, progress=update, device=device, workers=workers)
     print(json.dumps(rep.to_dict(), indent=2) if as_json else rep.format())
     return 0 if rep.passed else 1
 
@@ -302,6 +305,8 @@ def main(argv=None) -> int:
     c.add_argument("--require-complete", action="store_true")
     c.add_argument("--json", action="store_true")
     c.add_argument("--device", default="auto")
+    c.add_argument("--workers", type=int, default=0, help="processes checking the sequences (0: one per core, "
+                                                           "at most 16 and one per 16 sequences)")
     a = p.parse_args(argv)
     try:
         if a.cmd == "generate":
@@ -316,7 +321,8 @@ def main(argv=None) -> int:
             print(pack_sequences(a.path, a.sequences, a.out))
             return 0
         return run_check(a.path, stride=a.stride, max_depth=a.max_depth, max_strain=a.max_strain,
-                         require_complete=a.require_complete, as_json=a.json, device=a.device)
+                         require_complete=a.require_complete, as_json=a.json, device=a.device,
+                         workers=a.workers)
     except InputError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

@@ -36,6 +36,7 @@ interrupted run (removed by the next ``generate``).
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -142,6 +143,18 @@ class CheckReport:
 
     def warn(self, node: str, check: str, message: str) -> None:
         self.warnings.append({"node": node, "check": check, "message": message})
+
+    def absorb(self, part: CheckReport) -> None:
+        """Add the findings of ``part``, a report of further sequences (a worker's share)."""
+        self.problems += part.problems
+        self.warnings += part.warnings
+        for name in ("sequences", "frames", "frames_checked_body", "pinched_strain_frames", "crossing_frames"):
+            setattr(self, name, getattr(self, name) + getattr(part, name))
+        for name in ("max_depth", "max_strain", "max_strain_regular", "max_support_drop", "max_crossing_edges"):
+            setattr(self, name, max(getattr(self, name), getattr(part, name)))
+        self.min_body_share = min(self.min_body_share, part.min_body_share)
+        self.min_height = min(self.min_height, part.min_height)
+        self.crossings.update(part.crossings)
 
     def to_dict(self) -> dict:
         return {"path": self.path, "passed": self.passed, "problems": self.problems, "warnings": self.warnings,
@@ -445,13 +458,15 @@ def _check_completeness(rep: CheckReport, ds, require_complete: bool) -> None:
 
 def check_dataset(path, *, body=None, stride: int = 1, max_depth: float = DEFAULT_MAX_DEPTH,
                   max_strain: float = DEFAULT_MAX_STRAIN, require_complete: bool = False, progress=None,
-                  device: str = "auto") -> CheckReport:
+                  device: str = "auto", workers: int = 0) -> CheckReport:
     """Check a store (see the module doc). Returns a :class:`CheckReport`.
 
     stride: check the body penetration on every stride-th frame (NaN, strain, missing frames and
     checksums always cover every frame: they need no body); body: BodyModel or source to re-pose
     with (default: the store's, verified by hash); progress(done, total) per sequence; device: Warp device of the
-    surface queries ("auto": CUDA when present, else the CPU).
+    surface queries ("auto": CUDA when present, else the CPU); workers: processes that check the
+    sequences (0: :func:`default_workers`; 1: this process alone). The report is the same for any
+    number of workers.
     """
     import zarr
 
@@ -461,6 +476,8 @@ def check_dataset(path, *, body=None, stride: int = 1, max_depth: float = DEFAUL
 
     if isinstance(stride, bool) or not isinstance(stride, int) or stride < 1:
         raise InputError(f"--stride must be an integer >= 1, got {stride!r}")
+    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 0:
+        raise InputError(f"--workers must be an integer >= 0, got {workers!r}")
     quiet_warp()
     if device == "auto":
         import warp as wp
@@ -478,25 +495,12 @@ def check_dataset(path, *, body=None, stride: int = 1, max_depth: float = DEFAUL
         _check_fits(rep, ds, ctx)
 
     ids = sorted(m["sequences"])
-    pinched_seqs = []  # (sequence, frames, largest strain) with outliers only at body self-intersections
-    for n, sid in enumerate(ids):
-        node = f"sequences/{sid}"
-        if progress is not None:
-            progress(n, len(ids))
-        if not _verify_node(rep, loc, node, m["sequences"][sid], node):
-            continue
-        seq = _read_sequence(rep, node, root[node], m["sequences"][sid], ctx.num_vertices)
-        if seq is None:
-            continue
-        _check_sequence_body(rep, node, seq, bm, ctx, stride, max_depth)
-        if ctx.crossings is not None:
-            _check_sequence_crossings(rep, node, sid, seq[0], ctx)
-        if ctx.rest_inv is not None:
-            pinched = _check_sequence_strain(rep, node, seq, bm, ctx, max_strain)
-            if pinched is not None:
-                pinched_seqs.append((sid, *pinched))
-    if progress is not None:
-        progress(len(ids), len(ids))
+    limits = (stride, max_depth, max_strain)
+    workers = min(workers or default_workers(len(ids)), max(len(ids), 1))
+    if workers == 1:
+        pinched_seqs = _check_sequences(rep, ids, _Store(ds, bm, root, ctx), limits, progress)
+    else:
+        pinched_seqs = _check_in_workers(rep, ids, (path, body, device, template_ok), limits, workers, progress)
 
     if pinched_seqs:
         frames_total = sum(n for _, n, _ in pinched_seqs)
@@ -507,6 +511,98 @@ def check_dataset(path, *, body=None, stride: int = 1, max_depth: float = DEFAUL
                  f"{100 * worst[2]:.0f}% in {worst[0]}); counted apart like the penetration")
     _check_completeness(rep, ds, require_complete)
     return rep
+
+
+#: Sequences per share of a worker (:func:`check_dataset` with workers > 1).
+_SHARE = 8
+
+
+def default_workers(sequences: int) -> int:
+    """Processes for checking ``sequences`` sequences: one per core up to 16, and one per 16 sequences
+    (a worker's start, its imports and Warp, costs a few seconds)."""
+    import os
+
+    return max(1, min(os.cpu_count() or 1, 16, sequences // 16))
+
+
+@dataclass
+class _Store:
+    """What the per-sequence checks read: the opened store ``ds``, its body ``bm``, its Zarr ``root``
+    and the :class:`_Context`."""
+
+    ds: object
+    bm: object
+    root: object
+    ctx: _Context
+
+
+def _check_sequences(rep: CheckReport, ids: list, store: _Store, limits: tuple, progress=None) -> list:
+    """The checks of sequences ``ids`` into ``rep``; limits: (stride, max_depth [m], max_strain).
+    Returns (sequence, frames, largest strain) of those with outliers only at body self-intersections."""
+    stride, max_depth, max_strain = limits
+    m, ctx = store.ds.manifest, store.ctx
+    pinched_seqs = []
+    for n, sid in enumerate(ids):
+        node = f"sequences/{sid}"
+        if progress is not None:
+            progress(n, len(ids))
+        if not _verify_node(rep, store.ds.loc, node, m["sequences"][sid], node):
+            continue
+        seq = _read_sequence(rep, node, store.root[node], m["sequences"][sid], ctx.num_vertices)
+        if seq is None:
+            continue
+        _check_sequence_body(rep, node, seq, store.bm, ctx, stride, max_depth)
+        if ctx.crossings is not None:
+            _check_sequence_crossings(rep, node, sid, seq[0], ctx)
+        if ctx.rest_inv is not None:
+            pinched = _check_sequence_strain(rep, node, seq, store.bm, ctx, max_strain)
+            if pinched is not None:
+                pinched_seqs.append((sid, *pinched))
+    if progress is not None:
+        progress(len(ids), len(ids))
+    return pinched_seqs
+
+
+def _check_in_workers(rep: CheckReport, ids: list, opening: tuple, limits: tuple, workers: int, progress) -> list:
+    """:func:`_check_sequences` of ``ids`` in ``workers`` processes, shares of ``_SHARE`` sequences
+    handed out as workers free up and absorbed into ``rep`` in the order of ``ids``; opening: (path,
+    body, device, template_ok), how each worker opens the store."""
+    import multiprocessing
+
+    shares = [ids[i:i + _SHARE] for i in range(0, len(ids), _SHARE)]
+    pinched_seqs, done = [], 0
+    with multiprocessing.get_context("spawn").Pool(workers, _worker_open, opening) as pool:
+        if progress is not None:
+            progress(0, len(ids))
+        for share, (part, pinched) in zip(shares, pool.imap(functools.partial(_worker_check, limits=limits),
+                                                              shares)):
+            rep.absorb(part)
+            pinched_seqs += pinched
+            done += len(share)
+            if progress is not None:
+                progress(done, len(ids))
+    return pinched_seqs
+
+
+_WORKER: dict = {}
+
+
+def _worker_open(path, body, device: str, template_ok: bool) -> None:
+    """A check worker's start: open the store, its body and the checks' context once."""
+    import zarr
+
+    from simgen._warp_log import quiet_warp
+    from simgen.dataset.reader import open_dataset
+
+    quiet_warp()
+    ds = open_dataset(path)
+    bm = ds.load_body(body)
+    _WORKER["store"] = _Store(ds, bm, zarr.open_group(ds.loc.url(), mode="r"), _context(ds, bm, template_ok, device))
+
+
+def _worker_check(ids: list, limits: tuple) -> tuple[CheckReport, list]:
+    part = CheckReport(path=_WORKER["store"].ds.path)
+    return part, _check_sequences(part, ids, _WORKER["store"], limits)
 
 
 def _planned_sequences(spec: dict) -> list[str] | None:
