@@ -27,7 +27,7 @@ from torch import nn
 
 from simgen.errors import InputError
 from simgen.learn.checkpoint import load_model
-from simgen.learn.collision import DEFAULT_CLEARANCE, CollisionSurface, push_out
+from simgen.learn.collision import DEFAULT_CLEARANCE, CollisionSurface, MeshSpread, push_out
 from simgen.learn.features import motion_features
 from simgen.learn.models import GarmentFitMLP, GarmentTemplate, LinearRegressor, WrinkleGRU
 from simgen.learn.skinning import lbs_torch
@@ -108,14 +108,18 @@ class BodyCollision(nn.Module):
 
     def push_out_sequence(self, raw: torch.Tensor, betas: torch.Tensor, poses: torch.Tensor, trans: torch.Tensor,
                           chunk: int = 256):
-        """The collision post-process over a sequence, ``chunk`` frames at a time: raw garment [m]
-        (T, V, 3), betas (T, B), poses (T, 24, 3), trans (T, 3) -> (pushed-out vertices [m]
-        (T, V, 3), moved (T, V) bool)."""
+        """The collision post-process over a sequence, ``chunk`` frames at a time, each push spread
+        over the cloth around it (:class:`simgen.learn.collision.MeshSpread` of the template's
+        faces): raw garment [m] (T, V, 3), betas (T, B), poses (T, 24, 3), trans (T, 3) ->
+        (pushed-out vertices [m] (T, V, 3), moved (T, V) bool: the vertices that collided)."""
+        faces = self.template.faces
+        if getattr(self, "_spread", None) is None or self._spread.rows.device != raw.device:
+            self._spread = MeshSpread(faces.cpu(), self.template.num_vertices).to(raw.device)
         out, moved = torch.empty_like(raw), torch.empty(raw.shape[:2], dtype=torch.bool, device=raw.device)
         for s in range(0, len(raw), chunk):
             sl = slice(s, s + chunk)
             bv = self.body(betas[sl], poses[sl], trans[sl])[0]
-            out[sl], moved[sl] = push_out(raw[sl], bv, self.surface, clearance=self.clearance)
+            out[sl], moved[sl] = push_out(raw[sl], bv, self.surface, clearance=self.clearance, spread=self._spread)
         return out, moved
 
 
