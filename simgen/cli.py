@@ -941,7 +941,7 @@ def dataset_check(
                                      help="Largest allowed principal stretch - 1."),
     require_complete: bool = typer.Option(False, "--require-complete", help="Planned but missing sequences fail."),
     as_json: bool = typer.Option(False, "--json", help="Print the report as JSON."),
-    workers: int = typer.Option(0, "--workers", min=0, rich_help_panel=EXPERT,
+    workers: int = typer.Option(0, "--workers", rich_help_panel=EXPERT,
                                 help="Processes checking the sequences (0: one per core, at most 16 and one per 16 "
                                      "sequences; the report is the same)."),
 ) -> None:

@@ -895,10 +895,13 @@ def _ray_run_with(hook: str, spec, tiny, tmp_path):
     return rep, rep_progress
 
 
-def test_ray_local_matches_local(tiny, tmp_path):
+def test_ray_local_matches_local(tiny, tmp_path, monkeypatch):
     """`--ray local`: one pool per Ray task on this machine's CPUs (the template and fits in one, the
     sequences dealt out), a task that fails once is retried, and the store equals the locally
-    generated one."""
+    generated one. The tasks report their progress every 0.25 s here (a few seconds of stepping)."""
+    import simgen.dataset.distributed as distributed
+
+    monkeypatch.setattr(distributed, "PROGRESS_EVERY_S", 0.25)
     spec = load_spec("tiny").with_overrides(motions=["walk_fast"], batch_size=1)
     rep, progress = _ray_run_with("SIMGEN_DATASET_FAULT_ONCE", spec, tiny, tmp_path)
     assert rep.written == 2

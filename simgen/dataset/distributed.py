@@ -85,11 +85,11 @@ class _Delivered:
         return True
 
 
-def _run_pool_task(task, deadline, meter):
+def _run_pool_task(task, deadline, meter, every: float):
     # Runs in a Ray worker: quiet Warp, then the same function as local execution, reporting its
-    # cloth-frames to the meter every PROGRESS_EVERY_S and each failed job as it fails (without
-    # waiting for the actor). The deadline is a wall-clock time fixed by the driver, so a task that
-    # waits for a GPU or is retried keeps it.
+    # cloth-frames to the meter every ``every`` seconds (the driver's PROGRESS_EVERY_S) and each
+    # failed job as it fails (without waiting for the actor). The deadline is a wall-clock time
+    # fixed by the driver, so a task that waits for a GPU or is retried keeps it.
     import time
 
     import ray
@@ -102,7 +102,7 @@ def _run_pool_task(task, deadline, meter):
 
     def progress(frames: int) -> None:
         now = time.monotonic()
-        if now - last[0] >= PROGRESS_EVERY_S:
+        if now - last[0] >= every:
             last[0] = now
             meter.report.remote(task.name, frames)
 
@@ -209,7 +209,7 @@ class RayExecutor:
             tasks = [replace(t, feed=_FeedProxy(actor)) for t in tasks]
         refs = []
         for task in tasks:
-            ref = self._remote.remote(task, deadline, self._meter)
+            ref = self._remote.remote(task, deadline, self._meter, PROGRESS_EVERY_S)
             self._pending[ref] = (task, on_outcome, progress)
             refs.append(ref)
         return refs
