@@ -46,7 +46,8 @@ def main(argv=None) -> int:
         runs.append({"workers": w, "wall_s": wall, "sequences_per_s": rep.sequences / wall,
                      "passed": rep.passed, "same_report": d == reference})
     out = {"benchmark": "dataset_check", "commit": commit(), "date": time.strftime("%Y-%m-%d"),
-           "device": {"check_device": a.device, "cpus": os.cpu_count(), "cpu": platform.processor() or platform.machine()},
+           "device": {"check_device": a.device, "cpus": os.cpu_count(),
+                      "cpu": platform.processor() or platform.machine()},
            "sizes": {"sequences": len(ds.sequence_ids()), "frames": d["frames"], "stride": a.stride},
            "runs": runs}
     text = json.dumps(out, indent=2)

@@ -13,7 +13,8 @@ One store per garment (docs/architecture.md, "Dataset store"). For each store th
    (:mod:`simgen.dataset.distributed`);
 4. enters every outcome into the manifest (rewritten atomically every few seconds and after each
    pool); a failed job (diverged, or a sequence with a strain or depth outlier, stopped at that
-   frame: ``execution.retry_strain_outliers``, ``retry_depth_outliers``) runs again with the substep halved, up to ``max_attempts``:
+   frame: ``execution.retry_strain_outliers``, ``retry_depth_outliers``) runs again with the
+   substep halved, up to ``max_attempts``:
    in the same pool (a slot at twice the substeps beside the others) while the work waiting there
    outlasts it, else in a later pool, with the other failures of its attempt that are known by
    then, started as soon as a worker is free (on Ray, while the other pools still step); a failed template

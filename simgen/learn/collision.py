@@ -152,7 +152,7 @@ class MeshSpread:
     def __init__(self, faces, num_vertices: int, rings: int = RINGS) -> None:
         f = torch.as_tensor(np.asarray(faces) if not torch.is_tensor(faces) else faces, dtype=torch.int64)
         edges = torch.cat([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
-        edges = torch.unique(torch.sort(torch.cat([edges, edges.flip(1)]), dim=1).values, dim=0)
+        edges = torch.unique(torch.sort(edges, dim=1).values, dim=0)             # each undirected edge once
         both = torch.cat([edges, edges.flip(1)])
         degree = torch.bincount(both[:, 0], minlength=num_vertices).clamp(min=1).to(torch.float32)
         self.rows, self.cols, self.weight = both[:, 0], both[:, 1], 1.0 / degree[both[:, 0]]
@@ -171,7 +171,8 @@ class MeshSpread:
 
 @torch.no_grad()
 def push_out(points: torch.Tensor, body_vertices: torch.Tensor, surface: CollisionSurface, *,
-             clearance: float = DEFAULT_CLEARANCE, spread: MeshSpread | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+             clearance: float = DEFAULT_CLEARANCE,
+             spread: MeshSpread | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """The collision post-process: move vertices closer than ``clearance`` to the body out to it.
 
     points [m], shape (N, P, 3) (or (P, 3)); body_vertices [m] of the posed body, shape (N, V, 3)
