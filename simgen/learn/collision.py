@@ -156,7 +156,7 @@ class MeshSpread:
         both = torch.cat([edges, edges.flip(1)])
         degree = torch.bincount(both[:, 0], minlength=num_vertices).clamp(min=1).to(torch.float32)
         self.rows, self.cols, self.weight = both[:, 0], both[:, 1], 1.0 / degree[both[:, 0]]
-        self.num_vertices, self.rings = int(num_vertices), int(rings)
+        self.rings = int(rings)
 
     def to(self, device) -> MeshSpread:
         self.rows, self.cols, self.weight = (t.to(device) for t in (self.rows, self.cols, self.weight))

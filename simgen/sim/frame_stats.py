@@ -22,6 +22,7 @@ from simgen.garment.crossings import CrossingCounter
 from simgen.params import ContactParams
 from simgen.sim.collider import BodyCollider
 from simgen.sim.energies.contact import part_inputs
+from simgen.sim.energies.membrane import membrane_funcs
 from simgen.sim.model import ClothModel
 
 __all__ = ["FRAME_STAT_KEYS", "FrameStats", "stack_stats"]
@@ -51,6 +52,9 @@ FRAME_STAT_KEYS = (
 )                                 #     (the dataset check's strain rule)
 
 
+_membrane = membrane_funcs(wp.float32)
+
+
 @wp.kernel(enable_backward=False)
 def triangle_stretch_max(x: wp.array(dtype=wp.vec3), triangles: wp.array(dtype=wp.int32, ndim=2),
                          inv_rest: wp.array(dtype=wp.mat22), tri_instance: wp.array(dtype=wp.int32),
@@ -67,16 +71,10 @@ def triangle_stretch_max(x: wp.array(dtype=wp.vec3), triangles: wp.array(dtype=w
     a0 = triangles[t, 0]
     a1 = triangles[t, 1]
     a2 = triangles[t, 2]
-    x0 = x[a0]
-    e1 = x[a1] - x0
-    e2 = x[a2] - x0
-    r = inv_rest[t]
-    f0 = e1 * r[0, 0] + e2 * r[1, 0]      # F's columns
-    f1 = e1 * r[0, 1] + e2 * r[1, 1]
-    a = wp.dot(f0, f0)
-    b = wp.dot(f0, f1)
-    c = wp.dot(f1, f1)
-    stretch = wp.sqrt(0.5 * (a + c) + wp.sqrt(wp.max(0.25 * (a - c) * (a - c) + b * b, 0.0))) - 1.0
+    f = _membrane.deformation_gradient(x[a0], x[a1], x[a2], inv_rest[t])
+    c = wp.transpose(f) * f
+    stretch = wp.sqrt(0.5 * (c[0, 0] + c[1, 1]) + wp.sqrt(wp.max(0.25 * (c[0, 0] - c[1, 1]) * (c[0, 0] - c[1, 1])
+                                                                 + c[0, 1] * c[0, 1], 0.0))) - 1.0
     wp.atomic_max(out, i, stretch)
     if self_hit[a0] == 0 and self_hit[a1] == 0 and self_hit[a2] == 0:
         wp.atomic_max(out_regular, i, stretch)
