@@ -161,8 +161,10 @@ def main(argv=None) -> int:
             "output_frames_stored": out_frames,
             "stopped": r.stopped,
             # Ray: the workers (one per GPU) and each pool task's timeline [s from the run's start];
-            # start-up = until the last first-round pool was built.
+            # start-up = until the last first-round pool was built, of which Ray's own start
+            # (executor_ready_s) comes first.
             "ray": a.ray,
+            "executor_ready_s": r.executor_ready,
             "workers": len({json.dumps(t["worker"]) for t in r.tasks if t["worker"]}) or None,
             "startup_s": r.startup_s,
             "startup_share": r.startup_s / wall if r.startup_s is not None else None,

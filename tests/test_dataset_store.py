@@ -575,17 +575,18 @@ class _TwoWorkers:
     the driver asks for the next to end, and logs each start (with its jobs) and end; with
     ``share`` the tasks of a round share a :class:`JobFeed`, as on Ray; with ``live`` a task's
     failures for the driver reach it before the task ends, as the Ray executor hands them over
-    (next() gives (None, None) first)."""
+    (next() gives (None, None) first); with ``beside`` that many pools may start beside the busy
+    workers (logged as "beside"), as on Ray's GPUs."""
 
     parallel = 2
 
-    def __init__(self, share: bool = False, live: bool = False) -> None:
+    def __init__(self, share: bool = False, live: bool = False, beside: int = 0) -> None:
         self.waiting: list = []
         self.log: list = []
-        self.share, self.live = share, live
+        self.share, self.live, self.beside = share, live, beside
         self.held = None
 
-    def start(self, tasks, budget_s, on_outcome, progress):
+    def start(self, tasks, budget_s, on_outcome, progress, beside=False):
         from dataclasses import replace
 
         from simgen.dataset.execute import JobFeed
@@ -596,7 +597,7 @@ class _TwoWorkers:
         handles = []
         for task in tasks:
             handles.append(len(self.log))
-            self.log.append(("start", handles[-1], [j.id for j in task.jobs]))
+            self.log.append(("beside" if beside else "start", handles[-1], [j.id for j in task.jobs]))
             self.waiting.append((handles[-1], task, on_outcome))
         return handles
 
@@ -685,6 +686,26 @@ def test_a_failure_reported_before_its_task_ends_starts_its_retry_at_once(tmp_pa
     assert workers.log == [("start", 0, ["template", "zero", "b1p2", "walk_fast__b1p2"]),
                            ("start", 1, ["walk_fast__zero"]), ("end", 0), ("start", 3, ["walk_fast__zero"]),
                            ("end", 1), ("end", 3)]
+    assert open_dataset(tmp_path / "s").manifest["failed"] == {} and check_dataset(tmp_path / "s").passed
+
+
+def test_a_retry_starts_beside_busy_workers_where_the_executor_has_room(tmp_path, monkeypatch):
+    """Both workers busy when a failure comes in (as on Ray's GPUs, where a pool takes part of its
+    GPU): the retry starts at once in a pool beside them, not when the first of them ends; the
+    report marks that task and when each was handed to the executor."""
+    from simgen.dataset import generate
+
+    workers = _TwoWorkers(live=True, beside=1)
+    monkeypatch.setattr(generate, "_make_executor", lambda ray, spec: workers)
+    _patch_pools(monkeypatch, lambda j, r: _injected(j) if j.id == "walk_fast__b1p2" and j.attempt == 1 else r)
+    (rep,) = generate_dataset(micro(), out=str(tmp_path / "s"))
+    assert rep.pending == 0 and not rep.failed and rep.written == 2 and rep.retried == 1
+    assert workers.log == [("start", 0, ["template", "zero", "b1p2", "walk_fast__b1p2"]),
+                           ("start", 1, ["walk_fast__zero"]), ("beside", 2, ["walk_fast__b1p2"]),
+                           ("end", 0), ("end", 1), ("end", 2)]
+    assert [(t["round"], t["beside"]) for t in rep.tasks] == [(1, False), (1, False), (2, True)]
+    assert all(t["submitted"] <= t["start"] for t in rep.tasks)
+    assert rep.tasks[0]["submitted"] == rep.tasks[1]["submitted"] <= rep.tasks[2]["submitted"]
     assert open_dataset(tmp_path / "s").manifest["failed"] == {} and check_dataset(tmp_path / "s").passed
 
 
@@ -921,22 +942,41 @@ def test_ray_worker_killed_mid_task_is_replaced(tiny, tmp_path):
                   tiny, tmp_path)
 
 
-def test_ray_failure_reported_while_its_task_runs_is_retried_once(tiny, tmp_path):
-    """`--ray local` with the template's first attempt diverging: the worker reports the failure
-    to the driver as it happens and the task's result repeats it; the driver counts it once, runs
-    the template again at twice the substeps, and the store is complete, passes the check and
-    holds the same sequences as the local one (every job relaxes from the garment, not from the
-    template node)."""
-    pytest.importorskip("ray")
+def test_ray_failure_reported_while_its_task_runs_is_retried_once(tiny, tmp_path, monkeypatch):
+    """`--ray` on a Ray instance that counts one GPU (the pools run on the CPU), with the template's
+    first attempt diverging: the worker reports the failure to the driver as it happens and the
+    task's result repeats it; the driver counts it once and runs the template again at twice the
+    substeps beside the busy pool (Ray places it in the share of the GPU that the pool leaves),
+    while that pool still steps; the store is complete, passes the check and holds the same
+    sequences as the local one (every job relaxes from the garment, not from the template node)."""
+    ray = pytest.importorskip("ray")
+    import simgen.dataset.distributed as distributed
+    from simgen.dataset import generate
+
     out, marker = tmp_path / "ray", tmp_path / "diverge-marker"
-    spec = load_spec("tiny").with_overrides(motions=["walk_fast"], batch_size=2)
-    os.environ["SIMGEN_DATASET_DIVERGE_ONCE"] = str(marker)
+    spec = load_spec("tiny").with_overrides(motions=["walk_fast"], batch_size=1)   # a long first task
+    monkeypatch.setattr(distributed, "PROGRESS_EVERY_S", 0.25)
+    monkeypatch.setenv("SIMGEN_DATASET_DIVERGE_ONCE", str(marker))
+    src = os.path.dirname(os.path.dirname(os.path.abspath(generate.__file__)))
+    ray.init(num_cpus=2, num_gpus=1, include_dashboard=False, log_to_driver=False, configure_logging=False,
+             runtime_env={"env_vars": {"PYTHONPATH": src, "SIMGEN_DATASET_DIVERGE_ONCE": str(marker)}})
     try:
+        def on_cpu(address, spec):
+            executor = distributed.RayExecutor(address, spec)
+            assert (executor.parallel, executor.beside) == (1, 1)
+            executor.device = "cpu"
+            return executor
+
+        monkeypatch.setattr(generate, "_make_executor", on_cpu)
         (rep,) = generate_dataset(spec, out=str(out), ray="local")
     finally:
-        del os.environ["SIMGEN_DATASET_DIVERGE_ONCE"]
+        ray.shutdown()
     assert marker.exists()
     assert rep.pending == 0 and not rep.failed and rep.retried == 1 and rep.written == 2
+    first, retry = (next(t for t in rep.tasks if t["round"] == r) for r in (1, 2))
+    assert not first["beside"] and retry["beside"] and retry["start"] < first["end"], rep.tasks
+    assert first["worker"]["gpus"] == retry["worker"]["gpus"] == ["0"]
+    assert rep.executor_ready is not None and rep.executor_ready <= first["submitted"] <= first["start"]
     ds = open_dataset(out)
     assert ds.manifest["failed"] == {} and Location(out).node_attrs("template")["stats"]["attempts"] == 2
     assert check_dataset(out).passed

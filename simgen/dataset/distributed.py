@@ -1,8 +1,9 @@
 """Ray execution of dataset generation (``simgen dataset generate --ray ADDRESS|local``).
 
 The first jobs (:mod:`simgen.dataset.generate`) are dealt into one task per GPU (or per CPU),
-and each retry that the driver runs goes to the next free one as soon as its failure is known
-(the task reports it at once, before it returns). Each task runs
+and each retry that the driver runs starts as soon as its failure is known (the task reports it at
+once, before it returns): on a free GPU, or else beside a running pool, in the share of a GPU that
+the pool tasks leave free (``BESIDE_GPU_SHARE``, Ray's fractional GPUs). Each task runs
 :func:`simgen.dataset.execute.run_pool_task` in a Ray worker: one simulation pool on its own device
 (Ray's GPU resource), kept full until its jobs run out, writing each node straight into the store
 as its job ends; it returns the outcomes, and the driver alone rewrites the manifest. Two small
@@ -31,6 +32,9 @@ from simgen.errors import GenerationError, InputError
 __all__ = ["RayExecutor", "MAX_TASK_RETRIES"]
 
 MAX_TASK_RETRIES = 2
+#: Share of a GPU's Ray resource that a pool started beside another takes (a retry pool); a first
+#: pool takes the rest, so that each GPU runs at most one of each.
+BESIDE_GPU_SHARE = 0.25
 #: [s] How often a running task reports its cloth-frames to the driver's meter, and the driver
 #: shows them while it waits for a task to end.
 PROGRESS_EVERY_S = 2.0
@@ -147,8 +151,8 @@ class _FeedProxy:
 
 
 class RayExecutor:
-    """Runs pool tasks as Ray tasks, one per GPU (or per CPU) at a time: the driver starts at most
-    ``parallel`` and asks for the next to end."""
+    """Runs pool tasks as Ray tasks, one per GPU (or per CPU) at a time, and on GPUs one more beside
+    each: the driver starts at most ``parallel`` and ``beside`` and asks for the next to end."""
 
     def __init__(self, address: str, spec) -> None:
         try:
@@ -177,10 +181,12 @@ class RayExecutor:
         gpus = int(resources.get("GPU", 0))
         cpus = max(int(resources.get("CPU", 1)), 1)
         if gpus > 0:
-            self.parallel, self.device, opts = gpus, "cuda:0", {"num_gpus": 1, "num_cpus": 1}
+            self.parallel, self.beside, self.device = gpus, gpus, "cuda:0"
+            opts = {"num_gpus": 1 - BESIDE_GPU_SHARE, "num_cpus": 1}
         else:
-            self.parallel, self.device, opts = cpus, "cpu", {"num_cpus": 1}
+            self.parallel, self.beside, self.device, opts = cpus, 0, "cpu", {"num_cpus": 1}
         self._remote = ray.remote(max_retries=MAX_TASK_RETRIES, retry_exceptions=True, **opts)(_run_pool_task)
+        self._remote_beside = self._remote.options(num_gpus=BESIDE_GPU_SHARE) if gpus > 0 else None
         self._meter = ray.remote(num_cpus=0)(_Meter).options(scheduling_strategy=self._here()).remote()
         self._pending: dict = {}   # ObjectRef -> (task, on_outcome, progress)
         self._delivered = _Delivered()
@@ -191,12 +197,13 @@ class RayExecutor:
 
         return NodeAffinitySchedulingStrategy(self.ray.get_runtime_context().get_node_id(), soft=True)
 
-    def start(self, tasks, budget_s, on_outcome, progress) -> list:
-        """Submit the pool tasks of one round, each a Ray task on a GPU (or a CPU) of its own,
-        sharing one :class:`JobFeed` actor when there are several (a pool that ends early takes
-        the others' jobs); their handles. on_outcome(outcome) for each job, in :meth:`next`: a
-        failure as soon as the meter has it, the rest once its task has ended; progress(cloth_frames
-        of the running tasks) while :meth:`next` waits."""
+    def start(self, tasks, budget_s, on_outcome, progress, beside: bool = False) -> list:
+        """Submit the pool tasks of one round, each a Ray task on a GPU (or a CPU) of its own
+        (``beside``: in the share of a GPU that another pool leaves free), sharing one
+        :class:`JobFeed` actor when there are several (a pool that ends early takes the others'
+        jobs); their handles. on_outcome(outcome) for each job, in :meth:`next`: a failure as soon
+        as the meter has it, the rest once its task has ended; progress(cloth_frames of the running
+        tasks) while :meth:`next` waits."""
         import time
         from dataclasses import replace
 
@@ -207,9 +214,10 @@ class RayExecutor:
             actor = self.ray.remote(num_cpus=0)(JobFeed).options(scheduling_strategy=self._here()).remote(
                 {t.name: t.jobs for t in tasks})
             tasks = [replace(t, feed=_FeedProxy(actor)) for t in tasks]
+        remote = self._remote_beside if beside else self._remote
         refs = []
         for task in tasks:
-            ref = self._remote.remote(task, deadline, self._meter, PROGRESS_EVERY_S)
+            ref = remote.remote(task, deadline, self._meter, PROGRESS_EVERY_S)
             self._pending[ref] = (task, on_outcome, progress)
             refs.append(ref)
         return refs

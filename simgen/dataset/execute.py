@@ -483,8 +483,9 @@ def run_pool_task(task: BatchTask, *, progress=None, on_outcome=None, deadline: 
     retry_cloth_frames, retry_wall, clock}: slots: the pool's; wall [s] the pool's frames
     (simulation, statistics, host copies); step_s [s] the solver's stepping within them; write_s
     [s] the node writes; write_wait [s] the part of them the simulation waited for; retry_*: the
-    later attempts' frames and their share of the wall; clock: time.time() at start, ready (pool
-    built), dry (a freed slot first found no job left) and end. A store write failure stops the
+    later attempts' frames and their share of the wall; clock: time.time() at start, fed (the
+    first jobs taken from the feed), ready (pool built), dry (a freed slot first found no job left)
+    and end. A store write failure stops the
     task: ``error`` is one sentence (the store stays consistent; what was committed is kept).
     """
     from simgen.sim import SimulationJob, SimulationPool
@@ -517,6 +518,7 @@ def run_pool_task(task: BatchTask, *, progress=None, on_outcome=None, deadline: 
               "wall": 0.0, "cloth_frames": 0, "step_s": 0.0, "write_s": 0.0, "write_wait": 0.0,
               "clock": clock, "gpu_memory_high_bytes": None, "retry_cloth_frames": 0, "retry_wall": 0.0}
     first = source.take(min(pool_slots(spec, config.device, garment), max(len(task.jobs), 1)))
+    clock["fed"] = time.time()
     if not first:
         clock["ready"] = clock["end"] = time.time()
         return report

@@ -78,9 +78,13 @@ class StoreReport:
     failed_attempts: list = field(default_factory=list)
     stopped: str | None = None
     reconcile: dict = field(default_factory=dict)
-    # One entry per pool task, by round: {round, worker (Ray: node and GPU ids),
-    # start, ready, [dry,] end [s] from the run's start (task began, pool built, a freed slot
-    # first found no job left: the pool drains from there, last write ended), cloth_frames,
+    # [s] from the run's start until the executor could take tasks (Ray started; None without Ray).
+    executor_ready: float | None = None
+    # One entry per pool task, by round: {round, worker (Ray: node and GPU ids), beside (started
+    # in the share of a GPU that a busy pool left), submitted, start, fed, ready, [dry,] end [s]
+    # from the run's start (handed to the executor, task began, its first jobs taken from the feed,
+    # pool built, a freed slot first found no job left: the pool drains from there, last write
+    # ended), cloth_frames,
     # retry_cloth_frames and retry_wall [s] (its in-pool retries: frames, share of the pool's
     # time), slots, gpu_memory_high_bytes (Warp's pool at its fullest in the task's process
     # so far: a later task of the same process reports at least an earlier one's)}.
@@ -240,13 +244,13 @@ class _LocalExecutor:
     """Runs each task in this process, one at a time, when the driver asks for the next to end
     (:func:`run_pool_task`); the outcomes reach the driver as the jobs' writes end."""
 
-    parallel = 1
+    parallel, beside = 1, 0
 
     def __init__(self) -> None:
         self._waiting: deque = deque()
         self._count = 0
 
-    def start(self, tasks, budget_s, on_outcome, progress) -> list[int]:
+    def start(self, tasks, budget_s, on_outcome, progress, beside: bool = False) -> list[int]:
         """Queue the pool tasks of one round (each runs its own jobs); their handles."""
         handles = []
         for task in tasks:
@@ -312,6 +316,9 @@ def generate_dataset(spec, out: str | None = None, *, ray: str | None = None, ma
                                      planned_fits=len(spec.shapes()), done_before=done_before, reconcile=rec)
                 if executor is None:
                     executor = _make_executor(ray, spec)
+                    executor_ready = time.time() - clock_start
+                if ray is not None:
+                    report.executor_ready = executor_ready
                 driver = _Driver(spec, store, garment, body, executor, report, progress, say,
                                  getattr(executor, "device", None), clock_start)
                 driver.run(pending, time_budget, t_start)
@@ -352,6 +359,7 @@ class _Driver:
         self.clock_start = clock_start   # time.time() at the run's start
         self.retry: list[Job] = []
         self.by_key: dict = {}
+        self.submitted: dict = {}   # task name -> [s] from the run's start when it was handed to the executor
         self._saved = time.perf_counter()
         self.total = 0       # cloth-frames planned (retries add theirs)
         self.done = 0        # cloth-frames simulated in the rounds that ended
@@ -370,14 +378,14 @@ class _Driver:
 
     def _rounds(self, pending: list[Job], time_budget: float | None, t_start: float) -> None:
         """Keep every worker busy: the first jobs dealt into one pool per worker, and each retry in a
-        pool of its own as soon as a worker is free (not after the other pools: a failure found
-        as one pool drains runs while the others still step)."""
+        pool of its own as soon as its failure is known: on a free worker, else beside a busy one
+        where the executor has room (Ray on GPUs), not after the other pools."""
         spec, report = self.spec, self.report
         queue = list(pending)
         self.total = job_cloth_frames(spec, queue)
         self.show(0)
         t0 = time.perf_counter()
-        running: dict = {}     # executor handle -> (round, task)
+        running: dict = {}     # executor handle -> (round, task, started beside a busy worker)
         first, rounds, error = True, 0, None
         while queue or running:
             if report.stopped is None and error is None:
@@ -386,11 +394,11 @@ class _Driver:
                 break
             handle, r = self.executor.next()
             if handle is None:
-                # A running task reported failed jobs (Ray): their retries start on a free worker.
+                # A running task reported failed jobs (Ray): their retries start now (_launch).
                 self._requeue(queue, error)
                 continue
-            round_, task = running.pop(handle)
-            self._account(round_, task, r)
+            round_, task, beside = running.pop(handle)
+            self._account(round_, task, r, beside)
             report.wall = time.perf_counter() - t0
             self.store.save_manifest()
             self.show(self.done)
@@ -410,33 +418,42 @@ class _Driver:
         self.retry = []
 
     def _launch(self, queue, running, rounds, first, time_budget, t_start) -> tuple[int, bool]:
-        """Start pools on the free workers for what ``queue`` holds (:func:`_next_jobs`); returns
+        """Start pools for what ``queue`` holds (:func:`_next_jobs`): on the free workers, else (a
+        later round: retries) beside a busy one while the executor has room (``beside``); returns
         the rounds launched so far and whether the first is still to come."""
-        free = self.executor.parallel - len(running)
-        while queue and free > 0:
+        free = self.executor.parallel - sum(not b for _, _, b in running.values())
+        room = self.executor.beside - sum(b for _, _, b in running.values())
+        while queue and (free > 0 or (room > 0 and not first)):
             left = None if time_budget is None else time_budget - (time.perf_counter() - t_start)
             if left is not None and left <= 0:
                 self.report.stopped = f"time budget of {time_budget:g} s reached"
                 break
-            template_running = any(j.kind == "template" for _, t in running.values() for j in t.jobs)
+            template_running = any(j.kind == "template" for _, t, _ in running.values() for j in t.jobs)
             jobs = _next_jobs(queue, first, template_running)
             if not jobs:
                 break
+            beside = free <= 0
             first, rounds = False, rounds + 1
             self.by_key.update({j.key: j for j in jobs})
             loc = self.store.loc.root if self.store.loc.is_local else self.store.loc.url()
+            parts = _split(jobs, 1 if beside else free)
             tasks = [BatchTask(location=loc, spec=self.spec, garment=self.garment.name, jobs=part,
                                attempt=jobs[0].attempt, device=self.device, body_hash=self.body.hash,
-                               name=f"{self.garment.name}/{rounds}.{i}") for i, part in enumerate(_split(jobs, free))]
-            handles = self.executor.start(tasks, left, self.record, lambda n: self.show(self.done + n))
-            running.update({h: (rounds, t) for h, t in zip(handles, tasks)})
-            free -= len(tasks)
+                               name=f"{self.garment.name}/{rounds}.{i}") for i, part in enumerate(parts)]
+            submitted = time.time() - self.clock_start
+            handles = self.executor.start(tasks, left, self.record, lambda n: self.show(self.done + n), beside=beside)
+            running.update({h: (rounds, t, beside) for h, t in zip(handles, tasks)})
+            self.submitted.update({t.name: submitted for t in tasks})
+            if beside:
+                room -= len(tasks)
+            else:
+                free -= len(tasks)
         return rounds, first
 
-    def _account(self, round_: int, task: BatchTask, r: dict) -> None:
+    def _account(self, round_: int, task: BatchTask, r: dict, beside: bool) -> None:
         """Add one ended task to the report and the cloth-frame totals."""
         report = self.report
-        report.tasks.append(self._task_entry(round_, r))
+        report.tasks.append(self._task_entry(round_, task, r, beside))
         report.slots = max(report.slots, r["slots"])
         self.done += r["cloth_frames"]
         report.cloth_frames += r["cloth_frames"]
@@ -452,9 +469,10 @@ class _Driver:
             report.retry_simulate_wall += r["retry_wall"]
         self.total -= job_cloth_frames(self.spec, r["not_done"]) - r["abandoned_cloth_frames"]
 
-    def _task_entry(self, round_: int, r: dict) -> dict:
+    def _task_entry(self, round_: int, task: BatchTask, r: dict, beside: bool) -> dict:
         since = {k: v - self.clock_start for k, v in r["clock"].items()}
-        return {"round": round_, "worker": r.get("worker"), **since, "cloth_frames": r["cloth_frames"],
+        return {"round": round_, "worker": r.get("worker"), "beside": beside,
+                "submitted": self.submitted.get(task.name), **since, "cloth_frames": r["cloth_frames"],
                 "retry_cloth_frames": r["retry_cloth_frames"], "retry_wall": r["retry_wall"],
                 "slots": r["slots"], "gpu_memory_high_bytes": r["gpu_memory_high_bytes"]}
 
