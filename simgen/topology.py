@@ -140,11 +140,14 @@ def stack_bsr_patterns(patterns: list[BsrPattern]) -> BsrPattern:
         return patterns[0]
     vstart = np.r_[0, np.cumsum([p.num_vertices for p in patterns])]
     sstart = np.r_[0, np.cumsum([p.nnz for p in patterns])]
+    if max(vstart[-1], sstart[-1]) >= 2**31:
+        raise InputError(f"the stacked Hessian pattern has {sstart[-1]} blocks over {vstart[-1]} vertices, more "
+                         "than its int32 indices hold")
 
     def cat(name: str, shift: np.ndarray) -> np.ndarray:
-        return np.concatenate([getattr(p, name).astype(np.int64) + o for p, o in zip(patterns, shift)]).astype(np.int32)
+        return np.concatenate([getattr(p, name) + np.int32(o) for p, o in zip(patterns, shift)])
 
-    offsets = np.r_[np.concatenate([p.offsets[:-1].astype(np.int64) + o for p, o in zip(patterns, sstart)]),
+    offsets = np.r_[np.concatenate([p.offsets[:-1] + np.int32(o) for p, o in zip(patterns, sstart)]),
                     sstart[-1]].astype(np.int32)
     return BsrPattern(num_vertices=int(vstart[-1]), offsets=offsets, columns=cat("columns", vstart),
                       rows=cat("rows", vstart), diag_slots=cat("diag_slots", sstart),

@@ -313,3 +313,23 @@ def test_two_instances_are_uncoupled_and_keep_their_materials():
     m2 = builder.finalize("cpu", dtype=wp.float64)
     assert np.array_equal(m2.pattern.columns, m.pattern.columns)
     assert np.array_equal(m2.host.hinge_stiffness, m.host.hinge_stiffness)
+
+
+def test_a_repeated_model_concatenates_to_what_a_builder_of_its_copies_gives():
+    """A pool's model repeats one instance (its rest geometry computed once): every host array and the
+    pattern equal, bit for bit, those of a builder given each copy anew."""
+    v1, f1 = crumpled(3, seed=1)
+    v2, f2 = crumpled(4, seed=2)
+    a = ClothModel.from_mesh(v1, f1, "cotton", device="cpu")
+    b = ClothModel.from_mesh(v2, f2, "silk", bending_rest="flat", device="cpu")
+    m = ClothModel.concatenate([a, b, a, a])
+    builder = ClothModelBuilder()
+    for v, f, mat, rest in ((v1, f1, "cotton", "template"), (v2, f2, "silk", "flat"), (v1, f1, "cotton", "template"),
+                            (v1, f1, "cotton", "template")):
+        builder.add_instance(v, f, mat, bending_rest=rest)
+    fresh = builder.finalize("cpu")
+    for name, value in vars(fresh.host).items():
+        assert np.array_equal(getattr(m.host, name), value), name
+    for name in ("offsets", "columns", "rows", "diag_slots", "tri_slots", "hinge_slots"):
+        assert np.array_equal(getattr(m.pattern, name), getattr(fresh.pattern, name)), name
+    assert np.any(m.host.hinge_rest_angle != 0.0)   # the template's angles, the flat one's zero

@@ -109,7 +109,7 @@ class FrameStats:
         self.query_distance = max(float(contact.query_distance), ON_BODY_DISTANCE)
         # The garment's LBS positions: its template on each instance's shape, posed on the device by
         # the body's own skinning kernel with the garment's weights.
-        self.reference = garment_reference(garment, body)
+        self.reference = garment_reference(garment, body, device=str(dev))
         self.template = np.asarray(garment.vertices, dtype=np.float64)
         ni, nvg = model.num_instances, len(self.template)
         self.lbs_rest = wp.zeros((ni, nvg), dtype=wp.vec3, device=dev)

@@ -219,6 +219,19 @@ class ClothModelBuilder:
         return ClothModel._build(self.instances, device, dtype)
 
 
+def _rest_geometry(instances: list[InstanceSpec]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The instances' rest geometry, concatenated: each triangle's inverse rest shape matrix (F, 2, 2)
+    and rest area [m^2] (F,), and each hinge's dihedral angle [rad] in the rest shape (E,); computed
+    once per instance object (the slots of a pool share one)."""
+    from simgen.sim.energies.reference import dihedral_angles  # numpy, float64
+
+    built: dict = {}
+    for s in instances:
+        if id(s) not in built:
+            built[id(s)] = (*_triangle_rest_frames(s.vertices, s.faces), dihedral_angles(s.vertices, s.hinges))
+    return tuple(np.concatenate([built[id(s)][k] for s in instances]) for k in range(3))
+
+
 def _instance_patterns(instances: list[InstanceSpec]) -> BsrPattern:
     """The model's Hessian pattern: each instance's, stacked; instances of one mesh (a pool's
     slots) share one build."""
@@ -317,12 +330,11 @@ class ClothModel:
         models = list(models)
         if not models:
             raise InputError("concatenate needs at least one ClothModel")
-        builder = ClothModelBuilder()
-        for m in models:
-            for spec in m.instances:
-                builder.add_spec(spec)
-        return builder.finalize(device if device is not None else models[0].device,
-                                dtype=dtype if dtype is not None else models[0].scalar)
+        # Their instances were checked when those models were built; a model repeated (a pool's
+        # slots) shares its instances' objects, whose rest geometry _build computes once.
+        return cls._build([spec for m in models for spec in m.instances],
+                          device if device is not None else models[0].device,
+                          dtype if dtype is not None else models[0].scalar)
 
     @classmethod
     def _build(cls, instances: list[InstanceSpec], device, scalar) -> ClothModel:
@@ -351,7 +363,7 @@ class ClothModel:
         hinge_instance = np.repeat(np.arange(len(instances)), nhinges)
         vertex_instance = np.repeat(np.arange(len(instances)), nverts)
 
-        inv_rest, area = _triangle_rest_frames(rest, faces)
+        inv_rest, area, template_angle = _rest_geometry(instances)
         mats = [s.material for s in instances]
         lam_h = np.array([m.membrane_stiffness[0] for m in mats])[tri_instance]
         mu_h = np.array([m.membrane_stiffness[1] for m in mats])[tri_instance]
@@ -361,8 +373,6 @@ class ClothModel:
         np.add.at(mass, faces.reshape(-1), np.repeat(area * density / 3.0, 3))
 
         # Bending: k_bend * l^2 / (4 (a1 + a2)) on the rest geometry (SNUG eq. 5.10's k_scale).
-        from simgen.sim.energies.reference import dihedral_angles  # numpy, float64
-
         hinge_faces = np.concatenate(
             [s.hinge_faces + off for s, off in zip(instances, self.triangle_start)]).reshape(-1, 2)
         edge_len2 = np.sum((rest[hinges[:, 1]] - rest[hinges[:, 0]]) ** 2, axis=1)
@@ -370,7 +380,7 @@ class ClothModel:
         k_bend = np.array([m.bending_stiffness for m in mats])[hinge_instance]
         hinge_stiffness = k_bend * edge_len2 / (4.0 * area_sum)
         template_rest = np.array([s.bending_rest == "template" for s in instances])[hinge_instance]
-        rest_angle = np.where(template_rest, dihedral_angles(rest, hinges), 0.0)
+        rest_angle = np.where(template_rest, template_angle, 0.0)
         hinge_damping = np.array([m.damping_stiffness for m in mats])[hinge_instance]
 
         vertex_friction = np.array([m.friction_coefficient for m in mats])[vertex_instance]

@@ -68,12 +68,12 @@ class GarmentReference:
 _CACHE: dict = {}
 
 
-def _reference(garment, body) -> GarmentReference:
+def _reference(garment, body, device) -> GarmentReference:
     from simgen.garment.skinning import shape_offsets
 
     v = garment.vertices
     support = v[:, 1] > v[:, 1].max() - SUPPORT_BAND
-    dirs = (np.moveaxis(shape_offsets(v, body, np.eye(body.num_betas)), 0, 2) if body.num_betas
+    dirs = (np.moveaxis(shape_offsets(v, body, np.eye(body.num_betas), device=device), 0, 2) if body.num_betas
             else np.zeros((len(v), 3, 1)))
     w = garment.skin_weights
     nonzero = w != 0.0
@@ -83,14 +83,14 @@ def _reference(garment, body) -> GarmentReference:
                             skin_weight=np.take_along_axis(w, order, axis=1))
 
 
-def garment_reference(garment, body) -> GarmentReference:
-    """The :class:`GarmentReference` of ``garment`` on ``body`` (cached: the shape blendshape of a
-    dress takes seconds)."""
+def garment_reference(garment, body, device: str | None = "cpu") -> GarmentReference:
+    """The :class:`GarmentReference` of ``garment`` on ``body``, its body queries on the Warp
+    ``device`` (cached whatever the device: the shape blendshape of a dress takes seconds on the CPU)."""
     key = (garment.name, hash(garment.vertices.tobytes()), hash(garment.skin_weights.tobytes()), body.hash)
     if key not in _CACHE:
         if len(_CACHE) >= 8:
             _CACHE.pop(next(iter(_CACHE)))
-        _CACHE[key] = _reference(garment, body)
+        _CACHE[key] = _reference(garment, body, device)
     return _CACHE[key]
 
 
