@@ -32,12 +32,15 @@ def test_a_freed_slot_takes_the_next_job(inputs, alone):
     pool.submit(SimulationJob(walk, betas=[1.0, -0.5], frames=6), tag="long")
     pool.submit(SimulationJob(squat, betas=[-1.0], frames=2), tag="short")
     pool.submit(SimulationJob(squat, betas=[0.5, 1.0], frames=3), tag="late")
-    ended, busy = {}, []
+    ended, busy, refit = {}, [], []
     while pool.busy or pool.queued:
         out = pool.step()
         busy.append(pool.busy + len(out))
+        refit.append(pool.setup.collider.refit_slots)
         ended.update({tag: (res, pool.frames_run) for tag, res in out})
     protocol = CFG.relax_frames + CFG.ramp_frames + CFG.rest_frames
+    # Once "long" has ended (slot 0 idle), the frames refit the body of "late"'s slot only.
+    assert refit == [(0, 1)] * (protocol + 5) + [(1,)] * (len(busy) - protocol - 5)
     # long: protocol + 5 stepped frames; short ends after protocol + 1 and "late" takes its slot.
     assert ended["short"][1] == protocol + 1 and ended["long"][1] == protocol + 5
     assert ended["late"][1] == (protocol + 1) + (protocol + 2)
@@ -53,6 +56,25 @@ def test_a_freed_slot_takes_the_next_job(inputs, alone):
         for k in ("inside_count", "crossing_edges", "retries"):
             assert np.array_equal(res.stats[k], ref.stats[k]), (tag, k)
         assert res.metadata["betas"] == ref.metadata["betas"] and res.metadata["batch_size"] == 2
+
+
+def test_the_frames_refit_every_active_body_and_leave_idle_ones_out_in_steps():
+    """refit_slots: the set the frames refit changes only to hold a slot that became active, or
+    when N / 8 of its slots are idle (each change captures the frame's graphs again)."""
+    from simgen.sim.frame_runner import refit_slots
+
+    every = tuple(range(16))
+    active = np.ones(16, dtype=bool)
+    assert refit_slots(active, every) == every
+    active[[3]] = False
+    assert refit_slots(active, every) == every               # 1 idle of 16: fewer than 16 / 8
+    active[[3, 7]] = False
+    kept = refit_slots(active, every)
+    assert kept == tuple(k for k in every if k not in (3, 7))
+    active[7] = True                                          # a job starts in slot 7: refit again
+    assert refit_slots(active, kept) == tuple(k for k in every if k != 3)
+    assert refit_slots(np.zeros(16, dtype=bool), kept) == ()
+    assert refit_slots(np.array([True, False]), (0, 1)) == (0,)   # small pools: any idle slot
 
 
 def test_a_job_at_twice_the_substeps_shares_the_pool(inputs, alone):

@@ -140,6 +140,8 @@ class BodyCollider:
     - points [m]: (I*Vb,) wp.vec3, the current body vertices (instance-major), the meshes' points.
     - velocities [m/s]: (I*Vb,) wp.vec3, the body's vertex velocities over the current step.
     - meshes: list of I ``wp.Mesh``; mesh_ids: (I,) uint64 warp array for the energy kernels.
+    - refit_slots: the instances whose meshes :meth:`refit` refits (None: all); a pool leaves its
+      idle slots out (their bodies are off: mesh id 0).
     - part_masks: (Fb,) int32 warp array of body part bit masks per face
       (:func:`simgen.body.parts.face_part_masks`), or None: contact's part rule (where the body
       intersects itself, :mod:`simgen.body.surface_query`) is on only with them.
@@ -186,6 +188,7 @@ class BodyCollider:
         self._warp_body = None
         self._no_touch: dict = {}
         self._one_step = wp.array(np.ones(self.num_instances, dtype=np.int32), dtype=wp.int32, device=dev)
+        self.refit_slots: tuple | None = None
 
     @classmethod
     def from_static(cls, vertices, faces, *, num_instances: int = 1, part_masks=None, device=None) -> "BodyCollider":
@@ -274,9 +277,10 @@ class BodyCollider:
         self.refit()
 
     def refit(self) -> None:
-        """Refit every mesh's BVH to its current points (no rebuild)."""
-        for m in self.meshes:
-            m.refit()
+        """Refit the BVHs of the meshes of ``refit_slots`` (every mesh when None) to their current
+        points (no rebuild)."""
+        for k in range(self.num_instances) if self.refit_slots is None else self.refit_slots:
+            self.meshes[k].refit()
 
     def check_model(self, model) -> None:
         """Raise InputError unless this collider has one body per instance of ``model`` and the body

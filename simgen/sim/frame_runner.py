@@ -19,7 +19,10 @@ that ends the frame through itself is then untangled (:mod:`simgen.sim.tangle_re
 
 A slot is active (its job steps) or idle: pinned where it is, still and without a body, so it
 takes no part in the physics (the membrane and bending kernels skip it, ``ClothModel.instance_active``;
-the body's posing and refits, contact and the solver's other launches still pass over it). :meth:`FrameRunner.place`
+the body's posing, contact and the solver's other launches still pass over it). The frame refits
+the body BVHs of :func:`refit_slots` only: every active slot, and idle ones until enough are idle
+to be worth capturing the frame's graphs again without them (an idle slot's refits were about two
+fifths of its cost on an H200, BENCHMARKS.md). :meth:`FrameRunner.place`
 starts a job in an idle slot before the next frame: its garment at its start positions, and the
 body of every slot posed where it is, the new slot's at the job's start pose, with no velocity.
 """
@@ -34,7 +37,17 @@ import warp as wp
 from simgen.sim.batch import BatchSetup
 from simgen.sim.tangle_repair import TangleRepair
 
-__all__ = ["FrameRunner"]
+__all__ = ["FrameRunner", "refit_slots"]
+
+
+def refit_slots(active: np.ndarray, current: tuple) -> tuple:
+    """The slots whose body BVHs a frame refits, given the slots ``active`` (bool (N,)) and the set
+    the frames so far refit: ``current`` while it holds every active slot and fewer than N / 8 idle
+    ones (each change captures the frame's graphs again), else exactly the active slots."""
+    busy = tuple(int(k) for k in np.flatnonzero(active))
+    if set(busy) <= set(current) and len(current) - len(busy) < max(1, len(active) // 8):
+        return current
+    return busy
 
 
 @wp.kernel(enable_backward=False)
@@ -97,6 +110,7 @@ class FrameRunner:
         self._pinned = model.vertex_pinned.numpy().copy()
         self._mesh_ids = setup.collider.mesh_ids.numpy().copy()
         self.active = np.zeros(N, dtype=bool)
+        setup.collider.refit_slots = tuple(range(N))
         self._placed: dict[int, tuple] = {}
         # With self-contact on, cloth that ends a frame through itself is untangled before it is recorded.
         self.repair = (TangleRepair(setup.garment.faces, len(setup.start_positions), N, dev)
@@ -147,6 +161,10 @@ class FrameRunner:
         (phase, k) of each slot's frame (None for idle), what a failure records.
         """
         s = self.setup
+        refit = refit_slots(self.active, s.collider.refit_slots)
+        if refit != s.collider.refit_slots:
+            s.collider.refit_slots = refit   # before the new jobs' bodies are placed (and refit)
+            self._graphs.clear()             # captured with the old set
         self._start_placed()
         self._quats.assign(np.ascontiguousarray(quats, dtype=np.float32))
         self._trans.assign(np.ascontiguousarray(trans, dtype=np.float32))
