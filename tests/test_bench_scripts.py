@@ -155,3 +155,14 @@ def test_check_bench_times_one_and_several_workers_with_the_same_report(tmp_path
     assert r["benchmark"] == "dataset_check" and r["sizes"]["sequences"] == 2 and r["commit"]
     assert [run["workers"] for run in r["runs"]] == [1, 2, 1]
     assert all(run["passed"] and run["same_report"] and run["wall_s"] > 0 for run in r["runs"])
+
+
+def test_bench_pool_build_times_the_parts_of_a_pools_start(tmp_path):
+    result = run_script("bench_pool_build.py", "--device", "cpu", "--spec", "tiny", "--slots", "2", "--top", "5",
+                        out=tmp_path / "build.json")
+    assert result["benchmark"] == "pool_build" and result["sizes"] == {"garment": "tshirt_1k",
+                                                                        "vertices": result["sizes"]["vertices"],
+                                                                        "slots": 2}
+    assert min(result["warp_import_init_s"], result["load_s"], result["pool_build_s"]) > 0
+    top = result["profile_top"]
+    assert len(top) == 5 and "pool.py" in top[0]["function"] and top[0]["cumulative_s"] <= result["pool_build_s"]
