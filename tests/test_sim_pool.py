@@ -77,6 +77,32 @@ def test_the_frames_refit_every_active_body_and_leave_idle_ones_out_in_steps():
     assert refit_slots(np.array([True, False]), (0, 1)) == (0,)   # small pools: any idle slot
 
 
+def test_statistics_of_some_slots_equal_those_of_all(inputs):
+    """FrameStats.measure on a subset of the slots (a pool's busy ones): their rows equal those of a
+    measure of every slot (the body queries of the others are skipped), the others' are None, and a
+    measure of every slot afterwards gives the same rows again. Slot 1's garment is moved 2 mm
+    inside its body, so that the body queries decide its rows."""
+    body, garment, walk, squat = inputs
+    pool = SimulationPool(garment, body, 2, CFG, fps=30.0)
+    pool.submit(SimulationJob(walk, betas=[1.0, -0.5], frames=4), tag="a")
+    pool.submit(SimulationJob(squat, betas=[-1.0], frames=4), tag="b")
+    for _ in range(CFG.relax_frames + CFG.ramp_frames + 1):
+        pool.step()
+    setup, nvg = pool.setup, len(garment.vertices)
+    x = setup.state.positions.numpy().copy()
+    skin = setup.collider.points.numpy().reshape(2, -1, 3)[1]
+    near = skin[np.linspace(0, len(skin) - 1, nvg).astype(int)]
+    inward = skin.mean(axis=0) - near
+    x[nvg:] = near + 0.002 * inward / np.linalg.norm(inward, axis=1, keepdims=True)
+    x = wp.array(x, dtype=wp.vec3, device=setup.state.positions.device)
+    betas = pool.runner.betas_now
+    every = setup.stats.measure(x, betas)
+    assert every[1]["inside_count"] > nvg // 2 and every[1]["body_share"] > 0.5
+    one = setup.stats.measure(x, betas, [1])
+    assert one[0] is None and one[1] == every[1]
+    assert setup.stats.measure(x, betas) == every
+
+
 def test_a_job_at_twice_the_substeps_shares_the_pool(inputs, alone):
     """A job with substeps_factor 2 (a dataset retry) beside a job at the pool's substeps: each
     gives what it gives alone at its own substeps (the retry's solver steps are half as long, its

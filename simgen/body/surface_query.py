@@ -351,7 +351,8 @@ def classify_inside(
     """Inside test and self-intersection rule (module doc), one thread per point.
 
     x [m] (P,) points; vertex_instance (P,) index into winding_meshes (warp.Mesh ids built with
-    support_winding_number); query_distance, probe, pinch_distance [m]; vertex_part (P,) home parts
+    support_winding_number; 0: the point is not classified, its outputs stay those of a point far
+    outside); query_distance, probe, pinch_distance [m]; vertex_part (P,) home parts
     and part_masks (Fb,) face part masks, read when use_parts != 0. Outputs (P,): distance [m] the
     unsigned distance to the surface (query_distance where farther), depth [m] that distance where
     inside (else 0), inside and self_hit (0/1).
@@ -363,6 +364,8 @@ def classify_inside(
     self_hit[i] = 0
     xi = x[i]
     mesh = winding_meshes[vertex_instance[i]]
+    if mesh == wp.uint64(0):
+        return
     found, d, n, face, u, v = _body_distance(mesh, xi, query_distance, 1)
     if found == 0:
         return
