@@ -156,3 +156,7 @@ def test_copies_side_by_side_are_counted_each_against_itself():
     counts = counter.count_points(points)
     assert counts[0] == counts[2] == 0
     assert counts[1] == count_crossing_edges(tangled.astype(np.float32), f)[0] > 0
+    # Counting some copies only (a pool's busy slots): theirs as before, the others 0, then all again.
+    assert counter.count_points(points, [1, 2]).tolist() == [0, counts[1], 0]
+    assert counter.count_points(points, [0]).tolist() == [0, 0, 0]
+    assert counter.count_points(points).tolist() == counts.tolist()

@@ -76,11 +76,15 @@ def _crossing_kernel(meshes: wp.array(dtype=wp.uint64), x: wp.array(dtype=wp.vec
                      faces: wp.array(dtype=wp.int32, ndim=2), edges: wp.array(dtype=wp.int32, ndim=2), pad: float,
                      num_vertices: int, crossing: wp.array(dtype=wp.int32), per_instance: wp.array(dtype=wp.int32)):
     # Thread = (instance k, edge e of one copy); copy k owns vertices [k V, (k + 1) V) and its own BVH
-    # (copies overlap in space: one BVH over all would hand every edge the other copies' triangles).
+    # (copies overlap in space: one BVH over all would hand every edge the other copies' triangles);
+    # a copy whose BVH id is 0 is not counted.
     tid = wp.tid()
     num_edges = edges.shape[0]
     instance = tid / num_edges
     e = tid - instance * num_edges
+    crossing[tid] = 0
+    if meshes[instance] == wp.uint64(0):
+        return
     base = instance * num_vertices
     i = edges[e, 0] + base
     j = edges[e, 1] + base
@@ -88,7 +92,6 @@ def _crossing_kernel(meshes: wp.array(dtype=wp.uint64), x: wp.array(dtype=wp.vec
     q = x[j]
     query = edge_query(meshes[instance], p, q, pad)
     f = int(0)
-    crossing[tid] = 0
     while wp.mesh_query_aabb_next(query, f):
         a = faces[f, 0] + base
         b = faces[f, 1] + base
@@ -152,13 +155,16 @@ class CrossingCounter:
         self._mesh_ids = None
         self._out = wp.zeros(self.instances * len(self.edges), dtype=wp.int32, device=device)
         self._per_instance = wp.zeros(self.instances, dtype=wp.int32, device=device)
+        self._counted_ids = None     # mesh_ids with 0 for the copies a count leaves out
+        self._counted: tuple = ()
 
-    def load(self, points: wp.array) -> None:
+    def load(self, points: wp.array, instances=None) -> None:
         """Take positions [m] already on the device, float32 (instances * V,) vec3: their float64
-        copy (:attr:`x64`) and every copy's BVH (:attr:`mesh_ids`), built or refit."""
+        copy (:attr:`x64`) and the BVHs (:attr:`mesh_ids`) of the copies ``instances`` (None: all),
+        built (all, the first time) or refit."""
         wp.copy(self._points, points)
         wp.launch(_to_float64, dim=len(self._x), device=self.device, inputs=[self._points], outputs=[self._x])
-        self._refit()
+        self._refit(range(self.instances) if instances is None else instances)
 
     @property
     def x64(self) -> wp.array:
@@ -180,7 +186,7 @@ class CrossingCounter:
         """One copy's edges (:attr:`edges`) on the device, (E, 2) int32."""
         return self._edges
 
-    def _refit(self) -> None:
+    def _refit(self, instances) -> None:
         if not self._meshes:
             # A BVH is built on the first frame's positions: one built on placeholder points and
             # only refit would keep a tree that groups unrelated triangles (every query then walks it all).
@@ -188,24 +194,36 @@ class CrossingCounter:
             self._meshes = [wp.Mesh(points=self._points[k * V:(k + 1) * V], indices=indices)
                             for k in range(self.instances)]
             self._mesh_ids = wp.array([m.id for m in self._meshes], dtype=wp.uint64, device=self.device)
-        for mesh in self._meshes:
-            mesh.refit()
+            self._counted_ids = wp.clone(self._mesh_ids)
+            self._counted = tuple(range(self.instances))
+        for k in instances:
+            self._meshes[k].refit()
 
     def _launch(self) -> None:
-        self._refit()
-        self._count()
+        self._refit(range(self.instances))
+        self._count(range(self.instances))
 
-    def _count(self) -> None:
+    def _count(self, instances) -> None:
+        instances = tuple(instances)
+        if instances != self._counted:
+            ids = np.zeros(self.instances, dtype=np.uint64)
+            for k in instances:
+                ids[k] = self._meshes[k].id
+            self._counted_ids.assign(ids)
+            self._counted = instances
         self._per_instance.zero_()
         wp.launch(_crossing_kernel, dim=len(self._out), device=self.device,
-                  inputs=[self._mesh_ids, self._x, self._faces, self._edges, BOX_PAD, self.num_vertices],
+                  inputs=[self._counted_ids, self._x, self._faces, self._edges, BOX_PAD, self.num_vertices],
                   outputs=[self._out, self._per_instance])
 
-    def count_points(self, points: wp.array) -> np.ndarray:
+    def count_points(self, points: wp.array, instances=None) -> np.ndarray:
         """Crossing edges of every copy, int64 (instances,), at positions [m] already on the device:
-        float32 points (instances * V,) vec3 (e.g. a batched cloth state's positions)."""
-        self.load(points)
-        self._count()
+        float32 points (instances * V,) vec3 (e.g. a batched cloth state's positions). instances:
+        the copies to count (None: all); the others count 0 and their BVHs are not refit (a pool's
+        idle slots)."""
+        chosen = tuple(range(self.instances)) if instances is None else tuple(sorted(instances))
+        self.load(points, chosen)
+        self._count(chosen)
         return self._per_instance.numpy().astype(np.int64)
 
     def crossing(self, positions) -> np.ndarray:

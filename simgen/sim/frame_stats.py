@@ -177,7 +177,7 @@ class FrameStats:
         up = self.lbs_up.numpy()[k] - lbs
         dist, depth, inside, self_hit = (a.numpy().reshape(ni, nvg)[k]
                                          for a in (self.distance, self.depth, self.inside, self.self_hit))
-        crossing = self.crossings.count_points(positions)[k]
+        crossing = self.crossings.count_points(positions, chosen)[k]
         strain, strain_regular = (a[k] for a in self._strain_max(positions, chosen))
         regular = (inside != 0) & (self_hit == 0)
         cols = dict(max_depth=depth.max(axis=1, initial=0.0),
