@@ -709,6 +709,39 @@ def test_a_retry_starts_beside_busy_workers_where_the_executor_has_room(tmp_path
     assert open_dataset(tmp_path / "s").manifest["failed"] == {} and check_dataset(tmp_path / "s").passed
 
 
+def test_only_retries_of_this_runs_failures_start_beside_a_busy_worker():
+    """_Driver._launch with one worker and room for one pool beside it: a job resumed at a later
+    attempt (its failure is in the manifest of an earlier run) waits for the free worker; once a
+    job has failed in this run, its retry starts beside the busy one."""
+    from types import SimpleNamespace
+
+    from simgen.dataset.generate import StoreReport, _Driver
+
+    class OneWorker:
+        parallel, beside = 1, 1
+
+        def __init__(self):
+            self.started = []
+
+        def start(self, tasks, budget_s, on_outcome, progress, beside=False):
+            self.started.append(([j.id for t in tasks for j in t.jobs], beside))
+            return [len(self.started) * 10 + i for i in range(len(tasks))]
+
+    workers = OneWorker()
+    store = SimpleNamespace(loc=SimpleNamespace(root="/store", is_local=True))
+    report = StoreReport(path="/store", garment="g", planned_sequences=3, planned_fits=0, done_before=0)
+    driver = _Driver(micro(), store, SimpleNamespace(name="g"), SimpleNamespace(hash="h"), workers, report,
+                     None, lambda msg: None, "cpu", 0.0)
+    resumed = replace(_job("c", 20), attempt=2)
+    queue, running = [_job("a", 30), _job("b", 10), resumed], {}
+    rounds, first = driver._launch(queue, running, 0, True, None, 0.0)
+    assert workers.started == [(["a", "b"], False)] and queue == [resumed] and not first
+    driver.failed_here.add(resumed.key)
+    driver._launch(queue, running, rounds, first, None, 0.0)
+    assert workers.started[1] == (["c"], True) and queue == []
+    assert [b for _, _, b in running.values()] == [False, True]
+
+
 def test_ray_executor_hands_failures_over_while_tasks_run_and_counts_them_once():
     """`RayExecutor.next` with a stand-in for Ray: while the task runs, the failures the meter has
     reach the driver at once, in order, and next() returns (None, None) so that their retries can

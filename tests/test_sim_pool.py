@@ -71,8 +71,16 @@ def test_the_frames_refit_every_active_body_and_leave_idle_ones_out_in_steps():
     active[[3, 7]] = False
     kept = refit_slots(active, every)
     assert kept == tuple(k for k in every if k not in (3, 7))
-    active[7] = True                                          # a job starts in slot 7: refit again
-    assert refit_slots(active, kept) == tuple(k for k in every if k != 3)
+    active[7] = True                                          # a job starts in slot 7: it is added
+    grown = refit_slots(active, kept)
+    assert grown == tuple(k for k in every if k != 3)
+    active[0] = False                                         # 1 idle slot in the set: kept
+    assert refit_slots(active, grown) == grown
+    active[1] = False                                         # 2: the busy slots only
+    busy = refit_slots(active, grown)
+    assert busy == tuple(k for k in every if k not in (0, 1, 3))
+    active[0] = True                                          # added, slot 1 stays out
+    assert refit_slots(active, busy) == tuple(k for k in every if k not in (1, 3))
     assert refit_slots(np.zeros(16, dtype=bool), kept) == ()
     assert refit_slots(np.array([True, False]), (0, 1)) == (0,)   # small pools: any idle slot
 

@@ -3,7 +3,8 @@
 The first jobs (:mod:`simgen.dataset.generate`) are dealt into one task per GPU (or per CPU),
 and each retry that the driver runs starts as soon as its failure is known (the task reports it at
 once, before it returns): on a free GPU, or else beside a running pool, in the share of a GPU that
-the pool tasks leave free (``BESIDE_GPU_SHARE``, Ray's fractional GPUs). Each task runs
+the pool tasks leave free (``BESIDE_GPU_SHARE``, Ray's fractional GPUs), as long as fewer retry
+pools run beside than there are GPUs (else it waits). Each task runs
 :func:`simgen.dataset.execute.run_pool_task` in a Ray worker: one simulation pool on its own device
 (Ray's GPU resource), kept full until its jobs run out, writing each node straight into the store
 as its job ends; it returns the outcomes, and the driver alone rewrites the manifest. Two small
@@ -33,7 +34,8 @@ __all__ = ["RayExecutor", "MAX_TASK_RETRIES"]
 
 MAX_TASK_RETRIES = 2
 #: Share of a GPU's Ray resource that a pool started beside another takes (a retry pool); a first
-#: pool takes the rest, so that each GPU runs at most one of each.
+#: pool takes the rest, so that no GPU runs two first pools. The driver starts at most one retry
+#: pool beside per GPU; which GPU each lands on is Ray's choice.
 BESIDE_GPU_SHARE = 0.25
 #: [s] How often a running task reports its cloth-frames to the driver's meter, and the driver
 #: shows them while it waits for a task to end.
@@ -227,7 +229,7 @@ class RayExecutor:
         (those the driver has not had yet: :class:`_Delivered`); while none has ended, the running
         tasks' cloth-frames go to progress every few seconds, and (None, None) comes back as soon
         as the meter has new failures of theirs (handed to on_outcome), so that the driver can
-        start their retries on a free worker."""
+        start their retries at once (on a free worker or beside a busy one)."""
         ray = self.ray
         while True:
             ready, _ = ray.wait(list(self._pending), num_returns=1, timeout=PROGRESS_EVERY_S)

@@ -360,6 +360,7 @@ class _Driver:
         self.retry: list[Job] = []
         self.by_key: dict = {}
         self.submitted: dict = {}   # task name -> [s] from the run's start when it was handed to the executor
+        self.failed_here: set = set()   # keys of the jobs that failed in this run (their retries may go beside)
         self._saved = time.perf_counter()
         self.total = 0       # cloth-frames planned (retries add theirs)
         self.done = 0        # cloth-frames simulated in the rounds that ended
@@ -418,9 +419,10 @@ class _Driver:
         self.retry = []
 
     def _launch(self, queue, running, rounds, first, time_budget, t_start) -> tuple[int, bool]:
-        """Start pools for what ``queue`` holds (:func:`_next_jobs`): on the free workers, else (a
-        later round: retries) beside a busy one while the executor has room (``beside``); returns
-        the rounds launched so far and whether the first is still to come."""
+        """Start pools for what ``queue`` holds (:func:`_next_jobs`): on the free workers, else
+        (retries of jobs that failed in this run, not jobs resumed at a later attempt) beside a busy
+        one while the executor has room (``beside``); returns the rounds launched so far and whether
+        the first is still to come."""
         free = self.executor.parallel - sum(not b for _, _, b in running.values())
         room = self.executor.beside - sum(b for _, _, b in running.values())
         while queue and (free > 0 or (room > 0 and not first)):
@@ -433,6 +435,9 @@ class _Driver:
             if not jobs:
                 break
             beside = free <= 0
+            if beside and not all(j.key in self.failed_here for j in jobs):
+                queue += jobs     # beside a busy pool only retries of failures of this run
+                break
             first, rounds = False, rounds + 1
             self.by_key.update({j.key: j for j in jobs})
             loc = self.store.loc.root if self.store.loc.is_local else self.store.loc.url()
@@ -505,6 +510,7 @@ class _Driver:
                 self.total += job_cloth_frames(spec, [again])
             else:
                 self.retry.append(again)
+                self.failed_here.add(again.key)
             report.retried += 1
             report.failed_attempts.append({"job": job.key, "attempt": job.attempt, "message": o["message"],
                                            "at": time.time() - self.clock_start})

@@ -136,7 +136,8 @@ class CrossingCounter:
     simulation holds them; each copy is tested against itself only).
 
     faces (F, 3) int: the garment's triangles; num_vertices V of one copy; device: Warp device
-    ("cpu", "cuda:0", ...). The BVHs are built on the first frame counted and refit for every later one.
+    ("cpu", "cuda:0", ...). The BVHs are built on the first frame counted and refit for every later
+    one, each copy's only when that copy is loaded (:meth:`load`, :meth:`count_points`).
     """
 
     def __init__(self, faces, num_vertices: int, device: str = "cpu", instances: int = 1) -> None:
@@ -173,7 +174,8 @@ class CrossingCounter:
 
     @property
     def mesh_ids(self) -> wp.array:
-        """One BVH (wp.Mesh id) per copy over the positions last loaded, (instances,) uint64."""
+        """One BVH (wp.Mesh id) per copy, (instances,) uint64, over the positions that copy was last
+        loaded with (the last :meth:`load` of every copy: all of them)."""
         return self._mesh_ids
 
     @property

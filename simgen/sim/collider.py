@@ -141,7 +141,8 @@ class BodyCollider:
     - velocities [m/s]: (I*Vb,) wp.vec3, the body's vertex velocities over the current step.
     - meshes: list of I ``wp.Mesh``; mesh_ids: (I,) uint64 warp array for the energy kernels.
     - refit_slots: the instances whose meshes :meth:`refit` refits (None: all); a pool leaves its
-      idle slots out (their bodies are off: mesh id 0).
+      idle slots out once an eighth of its slots are idle (their bodies are off: mesh id 0;
+      :func:`simgen.sim.frame_runner.refit_slots`).
     - part_masks: (Fb,) int32 warp array of body part bit masks per face
       (:func:`simgen.body.parts.face_part_masks`), or None: contact's part rule (where the body
       intersects itself, :mod:`simgen.body.surface_query`) is on only with them.

@@ -42,12 +42,13 @@ __all__ = ["FrameRunner", "refit_slots"]
 
 def refit_slots(active: np.ndarray, current: tuple) -> tuple:
     """The slots whose body BVHs a frame refits, given the slots ``active`` (bool (N,)) and the set
-    the frames so far refit: ``current`` while it holds every active slot and fewer than N / 8 idle
-    ones (each change captures the frame's graphs again), else exactly the active slots."""
-    busy = tuple(int(k) for k in np.flatnonzero(active))
-    if set(busy) <= set(current) and len(current) - len(busy) < max(1, len(active) // 8):
-        return current
-    return busy
+    the frames so far refit (each change captures the frame's graphs again): ``current`` with any
+    active slot it lacks added, until N / 8 of its slots are idle; then exactly the active slots."""
+    busy = {int(k) for k in np.flatnonzero(active)}
+    grown = set(current) | busy
+    if len(grown) - len(busy) < max(1, len(active) // 8):
+        return current if grown == set(current) else tuple(sorted(grown))
+    return tuple(sorted(busy))
 
 
 @wp.kernel(enable_backward=False)
