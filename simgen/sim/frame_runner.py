@@ -4,7 +4,8 @@ retry and freeze policy, and the slots that start and end jobs between frames.
 A frame is ``substeps`` S solver steps. Each poses the body on the device from the frame's joint
 rotations at the substep's end (:meth:`WarpBody.pose_from_quats`, the shape too while it changes),
 refits the collider's meshes and takes one :meth:`ImplicitSolver.step` (:meth:`FrameRunner._substeps`).
-On CUDA the whole frame replays as one captured graph, one per (reshape, retry level); the CPU, and
+On CUDA the whole frame replays as one captured graph, one per (reshape, retry level) for the
+current set of refit bodies (:func:`refit_slots`); the CPU, and
 the first frame (it loads every kernel and takes the first lagged contacts), run the same sequence
 eagerly.
 
