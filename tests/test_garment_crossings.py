@@ -4,6 +4,7 @@ against an independent brute-force float64 count over every edge-triangle pair."
 import numpy as np
 import pytest
 
+from simgen.errors import InputError
 from simgen.garment.crossings import CrossingCounter, count_crossing_edges, crossing_edges
 from simgen.garment.mesh import unique_edges
 
@@ -160,3 +161,5 @@ def test_copies_side_by_side_are_counted_each_against_itself():
     assert counter.count_points(points, [1, 2]).tolist() == [0, counts[1], 0]
     assert counter.count_points(points, [0]).tolist() == [0, 0, 0]
     assert counter.count_points(points).tolist() == counts.tolist()
+    with pytest.raises(InputError, match="instances \\[0, 3\\]"):
+        counter.count_points(points, [3, 0])

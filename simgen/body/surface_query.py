@@ -62,12 +62,41 @@ still inside (the closest surface is buried in another part), or when the part r
 import functools
 from types import SimpleNamespace
 
+import numpy as np
 import warp as wp
 
-__all__ = ["contact_funcs", "query_kernel", "nearest_face_kernel", "classify_inside", "SELF_INTERSECTION_PROBE"]
+from simgen.errors import InputError
+
+__all__ = ["contact_funcs", "query_kernel", "nearest_face_kernel", "classify_inside", "SELF_INTERSECTION_PROBE",
+           "MeshIdSubset"]
 
 #: [m] outward offset of the self-intersection rule's probe (module doc).
 SELF_INTERSECTION_PROBE = 2.0e-3
+
+
+class MeshIdSubset:
+    """The ids of one warp.Mesh per instance on the device, with 0 for the instances outside a
+    chosen subset (:data:`classify_inside` and the crossing counter skip an id of 0: a pool's idle
+    slots). meshes: the warp.Mesh list; device: its Warp device."""
+
+    def __init__(self, meshes: list, device) -> None:
+        self.meshes = list(meshes)
+        self.chosen = tuple(range(len(self.meshes)))
+        self.ids = wp.array([m.id for m in self.meshes], dtype=wp.uint64, device=device)
+
+    def of(self, chosen) -> wp.array:
+        """(I,) uint64 ids, 0 outside ``chosen`` (instance indices); rewritten only when it changes."""
+        chosen = tuple(int(k) for k in chosen)
+        if chosen != self.chosen:
+            bad = [k for k in chosen if not 0 <= k < len(self.meshes)]
+            if bad:
+                raise InputError(f"instance {bad[0]} is not one of the {len(self.meshes)} instances")
+            ids = np.zeros(len(self.meshes), dtype=np.uint64)
+            for k in chosen:
+                ids[k] = self.meshes[k].id
+            self.ids.assign(ids)
+            self.chosen = chosen
+        return self.ids
 
 
 @functools.cache

@@ -26,6 +26,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
+from simgen.body.surface_query import MeshIdSubset
 from simgen.errors import InputError
 from simgen.garment.mesh import unique_edges
 
@@ -156,8 +157,7 @@ class CrossingCounter:
         self._mesh_ids = None
         self._out = wp.zeros(self.instances * len(self.edges), dtype=wp.int32, device=device)
         self._per_instance = wp.zeros(self.instances, dtype=wp.int32, device=device)
-        self._counted_ids = None     # mesh_ids with 0 for the copies a count leaves out
-        self._counted: tuple = ()
+        self._counted = None     # MeshIdSubset: mesh_ids with 0 for the copies a count leaves out
 
     def load(self, points: wp.array, instances=None) -> None:
         """Take positions [m] already on the device, float32 (instances * V,) vec3: their float64
@@ -196,8 +196,7 @@ class CrossingCounter:
             self._meshes = [wp.Mesh(points=self._points[k * V:(k + 1) * V], indices=indices)
                             for k in range(self.instances)]
             self._mesh_ids = wp.array([m.id for m in self._meshes], dtype=wp.uint64, device=self.device)
-            self._counted_ids = wp.clone(self._mesh_ids)
-            self._counted = tuple(range(self.instances))
+            self._counted = MeshIdSubset(self._meshes, self.device)
         for k in instances:
             self._meshes[k].refit()
 
@@ -206,16 +205,9 @@ class CrossingCounter:
         self._count(range(self.instances))
 
     def _count(self, instances) -> None:
-        instances = tuple(instances)
-        if instances != self._counted:
-            ids = np.zeros(self.instances, dtype=np.uint64)
-            for k in instances:
-                ids[k] = self._meshes[k].id
-            self._counted_ids.assign(ids)
-            self._counted = instances
         self._per_instance.zero_()
         wp.launch(_crossing_kernel, dim=len(self._out), device=self.device,
-                  inputs=[self._counted_ids, self._x, self._faces, self._edges, BOX_PAD, self.num_vertices],
+                  inputs=[self._counted.of(instances), self._x, self._faces, self._edges, BOX_PAD, self.num_vertices],
                   outputs=[self._out, self._per_instance])
 
     def count_points(self, points: wp.array, instances=None) -> np.ndarray:
@@ -223,7 +215,9 @@ class CrossingCounter:
         float32 points (instances * V,) vec3 (e.g. a batched cloth state's positions). instances:
         the copies to count (None: all); the others count 0 and their BVHs are not refit (a pool's
         idle slots)."""
-        chosen = tuple(range(self.instances)) if instances is None else tuple(sorted(instances))
+        chosen = tuple(range(self.instances)) if instances is None else tuple(sorted(int(k) for k in instances))
+        if any(not 0 <= k < self.instances for k in chosen):
+            raise InputError(f"instances {list(chosen)} are not all among the counter's {self.instances} copies")
         self.load(points, chosen)
         self._count(chosen)
         return self._per_instance.numpy().astype(np.int64)

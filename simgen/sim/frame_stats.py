@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from simgen.body.surface_query import SELF_INTERSECTION_PROBE, classify_inside
+from simgen.body.surface_query import SELF_INTERSECTION_PROBE, MeshIdSubset, classify_inside
 from simgen.garment.crossings import CrossingCounter
 from simgen.params import ContactParams
 from simgen.sim.collider import BodyCollider
@@ -106,8 +106,7 @@ class FrameStats:
             for k in range(collider.num_instances)]
         self.winding_ids = wp.array([m.id for m in self.winding_meshes], dtype=wp.uint64, device=dev)
         # The ids classify_inside reads: 0 for the instances a measure leaves out (a pool's idle slots).
-        self._measured_ids = wp.clone(self.winding_ids)
-        self._measured = tuple(range(len(self.winding_meshes)))
+        self._measured = MeshIdSubset(self.winding_meshes, dev)
         self.starts = np.asarray(model.vertex_start)
         self.query_distance = max(float(contact.query_distance), ON_BODY_DISTANCE)
         # The garment's LBS positions: its template on each instance's shape, posed on the device by
@@ -157,7 +156,7 @@ class FrameStats:
             self.winding_meshes[k].refit()
         model = self.model
         wp.launch(classify_inside, dim=model.num_vertices, device=model.device,
-                  inputs=[positions, model.vertex_instance, self._ids_of(chosen), self.query_distance,
+                  inputs=[positions, model.vertex_instance, self._measured.of(chosen), self.query_distance,
                           SELF_INTERSECTION_PROBE,
                           *part_inputs(model, self.collider.part_masks, self.pinch_distance),
                           self.distance, self.depth, self.inside, self.self_hit])
@@ -191,19 +190,6 @@ class FrameStats:
         for j, i in enumerate(k):
             rows[i] = {key: (int(v[j]) if key in ints else float(v[j])) for key, v in cols.items()}
         return rows
-
-
-    def _ids_of(self, chosen) -> wp.array:
-        """The winding meshes' ids with 0 for the instances not in ``chosen`` (classify_inside skips
-        their vertices); rewritten only when the measured instances change."""
-        chosen = tuple(chosen)
-        if chosen != self._measured:
-            ids = np.zeros(len(self.winding_meshes), dtype=np.uint64)
-            for k in chosen:
-                ids[k] = self.winding_meshes[k].id
-            self._measured_ids.assign(ids)
-            self._measured = chosen
-        return self._measured_ids
 
 
 def stack_stats(rows: list[dict]) -> dict:
