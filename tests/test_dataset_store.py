@@ -563,6 +563,9 @@ def test_a_retry_joins_its_pool_while_the_waiting_work_outlasts_it(tmp_path, mon
     # The first pool's entry: when it began to drain, and its in-pool retries.
     t = rep.tasks[0]
     assert t["ready"] <= t["dry"] <= t["end"]
+    # One slot: the feed is found dry as the slot frees, with nothing else in flight.
+    assert {k: v for k, v in t["drain"].items() if k != "frame_s"} == {
+        "jobs": 0, "frames_left_max": 0, "frames_left_sum": 0, "queued_frames": 0} and t["drain"]["frame_s"] > 0
     assert t["retry_cloth_frames"] == (frames if motions == 2 else 0) and (t["retry_wall"] > 0) == (motions == 2)
     ds = open_dataset(tmp_path / "s")
     a = ds.sequence("walk_fast__zero")["attrs"]["stats"]

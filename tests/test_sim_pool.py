@@ -34,7 +34,12 @@ def test_a_freed_slot_takes_the_next_job(inputs, alone):
     pool.submit(SimulationJob(squat, betas=[0.5, 1.0], frames=3), tag="late")
     ended, busy, refit = {}, [], []
     while pool.busy or pool.queued:
+        pool.fill()
+        left = dict(pool.frames_left())
         out = pool.step()
+        # Every running job's frames left drop by one a frame, and a job ends on its last one.
+        assert {tag for tag, n in left.items() if n == 1} == {tag for tag, _ in out}
+        assert dict(pool.frames_left()) == {tag: n - 1 for tag, n in left.items() if n > 1}
         busy.append(pool.busy + len(out))
         refit.append(pool.setup.collider.refit_slots)
         ended.update({tag: (res, pool.frames_run) for tag, res in out})
@@ -125,6 +130,7 @@ def test_a_job_at_twice_the_substeps_shares_the_pool(inputs, alone):
     protocol = CFG.relax_frames + CFG.ramp_frames + CFG.rest_frames
     pool.fill()
     assert pool.next_frames() == 2 * (protocol + 2)
+    assert pool.frames_left() == [("long", protocol + 5), ("retry", 2 * (protocol + 2))]
     ended = {}
     while pool.busy or pool.queued:
         ended.update({tag: (res, pool.frames_run) for tag, res in pool.step()})

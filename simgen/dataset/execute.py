@@ -485,7 +485,8 @@ def run_pool_task(task: BatchTask, *, progress=None, on_outcome=None, deadline: 
     [s] the node writes; write_wait [s] the part of them the simulation waited for; retry_*: the
     later attempts' frames and their share of the wall; clock: time.time() at start, fed (the
     first jobs taken from the feed), ready (pool built), dry (a freed slot first found no job left)
-    and end. A store write failure stops the
+    and end; drain (once dry): the jobs then running, the most and the sum of their pool frames
+    left, the pool frames of the jobs queued in the pool (retries), and its recent frame time [s]. A store write failure stops the
     task: ``error`` is one sentence (the store stays consistent; what was committed is kept).
     """
     from simgen.sim import SimulationJob, SimulationPool
@@ -537,7 +538,11 @@ def run_pool_task(task: BatchTask, *, progress=None, on_outcome=None, deadline: 
             for job in source.take(free):
                 retries.submit(job)
             if source.dry and "dry" not in clock:
-                clock["dry"] = time.time()   # the pool drains from here
+                clock["dry"] = time.time()   # the pool drains from here, with this work in flight:
+                left = [n for _, n in pool.frames_left()]
+                report["drain"] = {"jobs": len(left), "frames_left_max": max(left, default=0),
+                                   "frames_left_sum": sum(left), "queued_frames": pool.queued_frames,
+                                   "frame_s": pool.recent_frame_time()}
 
     def accept(job, frames) -> bool:
         frame_s = pool.recent_frame_time()

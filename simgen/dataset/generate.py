@@ -87,7 +87,9 @@ class StoreReport:
     # ended), cloth_frames,
     # retry_cloth_frames and retry_wall [s] (its in-pool retries: frames, share of the pool's
     # time), slots, gpu_memory_high_bytes (Warp's pool at its fullest in the task's process
-    # so far: a later task of the same process reports at least an earlier one's)}.
+    # so far: a later task of the same process reports at least an earlier one's), [drain: the
+    # work in flight when the pool found the feed dry: {jobs, frames_left_max, frames_left_sum,
+    # queued_frames, frame_s}]}.
     tasks: list = field(default_factory=list)
 
     @property
@@ -479,7 +481,8 @@ class _Driver:
         return {"round": round_, "worker": r.get("worker"), "beside": beside,
                 "submitted": self.submitted.get(task.name), **since, "cloth_frames": r["cloth_frames"],
                 "retry_cloth_frames": r["retry_cloth_frames"], "retry_wall": r["retry_wall"],
-                "slots": r["slots"], "gpu_memory_high_bytes": r["gpu_memory_high_bytes"]}
+                "slots": r["slots"], "gpu_memory_high_bytes": r["gpu_memory_high_bytes"],
+                **({"drain": r["drain"]} if "drain" in r else {})}
 
     def record(self, o: dict) -> None:
         """Enter one outcome into the manifest and the report; a failed job with attempts left runs

@@ -154,10 +154,15 @@ class SimulationPool:
         run = next((self._running[k] for k in sorted(self._running)), None)
         return None if run is None else run.schedule.frames[run.cursor][0]
 
+    def frames_left(self) -> list:
+        """[(tag, pool frames its job still has to step)] of the running jobs, in slot order (the
+        clip's frame 0 takes no step; a job at k times the substeps takes k pool frames a frame)."""
+        return [(r.tag, (len(r.schedule.frames) - r.cursor - (r.cursor < r.schedule.protocol_frames)) * r.factor - r.sub)
+                for _, r in sorted(self._running.items())]
+
     def next_frames(self) -> int:
         """Pool frames the longest running job still has to step (0 when nothing runs)."""
-        return max(((len(r.schedule.frames) - r.cursor - (r.cursor < r.schedule.protocol_frames)) * r.factor - r.sub
-                    for r in self._running.values()), default=0)
+        return max((n for _, n in self.frames_left()), default=0)
 
     # -- stepping -----------------------------------------------------------------------------------
     def fill(self) -> None:
