@@ -10,6 +10,13 @@ busy ones, it stays flat.
 
     python scripts/bench_pool_occupancy.py --device cuda:0 --slots 128 --busy 128 32 8 1 --out occ.json
 
+With ``--parts`` the timed frames run again with the device synchronised around each part of a
+frame (the solver's stepping, the frame statistics and their pieces, host copies, recording, the
+next frame's targets), each part's own time (its inner parts taken out) averaged per frame under
+its path ("statistics/crossings"); "frame" is what the step spent outside every part. The
+synchronisation removes any overlap of host and device work, so the parts add up to the synced
+frame, which may be longer than the unsynced one reported beside it.
+
 Prints (and writes with --out) JSON with the device, commit and sizes.
 """
 
@@ -28,12 +35,86 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from dataset_bench import _commit, _device, _emit  # noqa: E402  (scripts/ sibling: records and output)
 
 
-def _time_pool(garment, body, cfg, fps: float, slots: int, busy: int, motion: str, warmup: int, frames: int) -> dict:
+class _PartTimer:
+    """Times the parts of a pool frame: each patched callable synchronises the device before and
+    after it and adds its own time [s] (its inner parts' taken out) under its path."""
+
+    def __init__(self, device) -> None:
+        self.device, self.own, self._stack, self._undo = device, {}, [], []
+
+    def _sync(self) -> None:
+        import warp as wp
+
+        if not self.device.is_capturing:   # a part called inside a graph capture is not synchronised
+            wp.synchronize_device(self.device)
+
+    def patch(self, owner, attr: str, label: str) -> None:
+        inner = getattr(owner, attr)
+        timer = self
+
+        def timed(*args, **kwargs):
+            timer._sync()
+            path = "/".join([f[0] for f in timer._stack] + [label])
+            timer._stack.append([label, 0.0])
+            t0 = time.perf_counter()
+            try:
+                return inner(*args, **kwargs)
+            finally:
+                timer._sync()
+                total = time.perf_counter() - t0
+                _, children = timer._stack.pop()
+                timer.own[path] = timer.own.get(path, 0.0) + total - children
+                if timer._stack:
+                    timer._stack[-1][1] += total
+
+        self._undo.append((owner, attr, owner.__dict__[attr] if attr in owner.__dict__ else None))
+        setattr(owner, attr, timed)
+
+    def restore(self) -> None:
+        for owner, attr, original in reversed(self._undo):
+            if original is None:
+                delattr(owner, attr)
+            else:
+                setattr(owner, attr, original)
+        self._undo.clear()
+
+
+def _frame_parts(pool, frames: int) -> dict:
+    """Mean own time [ms] per frame of each part of ``frames`` more pool frames (module doc)."""
+    import warp as wp
+
+    import simgen.sim.placement as placement
+    import simgen.sim.pool as pool_module
+    from simgen.garment.crossings import CrossingCounter
+    from simgen.sim.frame_stats import FrameStats
+    from simgen.sim.recorder import JobRecorder
+
+    timer = _PartTimer(pool.setup.state.positions.device)
+    for owner, attr, label in ((type(pool), "step", "frame"), (type(pool), "fill", "fill"),
+                               (type(pool), "_frame_targets", "targets"), (type(pool.runner), "run", "stepping"),
+                               (pool_module, "measure_frame", "statistics"), (FrameStats, "measure", "measure"),
+                               (CrossingCounter, "count_points", "crossings"), (FrameStats, "_strain_max", "strain"),
+                               (placement, "placement_rows", "placement"), (wp.Mesh, "refit", "bvh_refit"),
+                               (wp.array, "numpy", "host_copy"), (JobRecorder, "record", "record")):
+        timer.patch(owner, attr, label)
+    try:
+        t0 = time.perf_counter()
+        for _ in range(frames):
+            pool.step()
+        synced = time.perf_counter() - t0
+    finally:
+        timer.restore()
+    parts = {path: 1e3 * t / frames for path, t in sorted(timer.own.items(), key=lambda kv: -kv[1])}
+    return {"synced_frame_ms": 1e3 * synced / frames, "parts_ms": parts}
+
+
+def _time_pool(garment, body, cfg, fps: float, slots: int, busy: int, motion: str, warmup: int, frames: int,
+               parts: bool) -> dict:
     from simgen.sim import SimulationJob, SimulationPool
 
     pool = SimulationPool(garment, body, slots, cfg, fps=fps)
     for k in range(busy):
-        pool.submit(SimulationJob(motion, frames=warmup + frames + 2, key=f"job{k}"))
+        pool.submit(SimulationJob(motion, frames=warmup + (2 if parts else 1) * frames + 2, key=f"job{k}"))
     walls, steps = [], []
     for i in range(warmup + frames):
         t0 = time.perf_counter()
@@ -42,10 +123,13 @@ def _time_pool(garment, body, cfg, fps: float, slots: int, busy: int, motion: st
         if i >= warmup:
             walls.append(time.perf_counter() - t0)
             steps.append(pool.step_time - before)
-    assert pool.busy == busy, "a job ended or failed inside the timed frames"
     wall, step = float(np.median(walls)), float(np.median(steps))
-    return {"slots": slots, "busy": busy, "frame_ms": 1e3 * wall, "step_ms": 1e3 * step,
-            "frame_ms_per_busy_slot": 1e3 * wall / busy}
+    row = {"slots": slots, "busy": busy, "frame_ms": 1e3 * wall, "step_ms": 1e3 * step,
+           "frame_ms_per_busy_slot": 1e3 * wall / busy}
+    if parts:
+        row.update(_frame_parts(pool, frames))
+    assert pool.busy == busy, "a job ended or failed inside the timed frames"
+    return row
 
 
 def main(argv=None) -> int:
@@ -57,6 +141,7 @@ def main(argv=None) -> int:
     p.add_argument("--motion", default="walk")
     p.add_argument("--warmup", type=int, default=4)
     p.add_argument("--frames", type=int, default=10)
+    p.add_argument("--parts", action="store_true", help="also time each part of a frame (module doc)")
     p.add_argument("--out", type=Path, default=None)
     a = p.parse_args(argv)
 
@@ -72,7 +157,7 @@ def main(argv=None) -> int:
     runs = []
     for busy in a.busy:
         runs.append(_time_pool(garment, body, cfg, spec.fps, a.slots, min(busy, a.slots), a.motion, a.warmup,
-                               a.frames))
+                               a.frames, a.parts))
         print(json.dumps(runs[-1]), file=sys.stderr, flush=True)
     result = {"benchmark": "pool_occupancy", "date": time.strftime("%Y-%m-%d"),
               "device": _device(spec.resolved_device()), "commit": _commit(), "spec": spec.name,

@@ -166,3 +166,17 @@ def test_bench_pool_build_times_the_parts_of_a_pools_start(tmp_path):
     assert min(result["warp_import_init_s"], result["load_s"], result["pool_build_s"]) > 0
     top = result["profile_top"]
     assert len(top) == 5 and "pool.py" in top[0]["function"] and top[0]["cumulative_s"] <= result["pool_build_s"]
+
+
+def test_bench_pool_occupancy_times_busy_and_idle_slots_and_the_parts_of_a_frame(tmp_path):
+    result = run_script("bench_pool_occupancy.py", "--device", "cpu", "--spec", "tiny", "--slots", "2",
+                        "--busy", "2", "1", "--warmup", "1", "--frames", "2", "--parts", out=tmp_path / "occ.json")
+    assert result["benchmark"] == "pool_occupancy" and result["sizes"]["slots"] == 2
+    assert [r["busy"] for r in result["runs"]] == [2, 1]
+    for run in result["runs"]:
+        parts = run["parts_ms"]
+        assert {"frame", "frame/stepping", "frame/statistics/measure", "frame/statistics/measure/crossings",
+                "frame/targets"} <= set(parts)
+        assert min(parts.values()) >= 0 and run["frame_ms"] >= run["step_ms"] > 0
+        # Own times: together they are the synced frames' wall time (the timer's own overhead aside).
+        assert sum(parts.values()) == pytest.approx(run["synced_frame_ms"], rel=0.02)
