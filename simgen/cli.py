@@ -1030,6 +1030,8 @@ _T_SPLIT = typer.Option(None, "--split", help="motion (thesis: held-out motions)
                         "default: the folder's split, else motion.")
 _T_TEST_SHAPES = typer.Option(None, "--test-shapes", help="With --split shape: shape ids to hold out, 'a,b' or "
                               "'a b' (default: the most extreme).")
+_T_VALID = typer.Option(None, "--validation-motions", help="Keep this many training motions out of training to "
+                        "pick the wrinkle GRU's weights and stop it (--patience); default: the folder's, else none.")
 _T_BUDGET = typer.Option(None, "--time-budget", help="Seconds: stop cleanly (everything saved) after this long.")
 _T_RESTART = typer.Option(False, "--restart", help="Discard a saved run in the folder instead of resuming it.")
 _T_TB = typer.Option(False, "--tensorboard", help="Also write TensorBoard events (needs tensorboard).")
@@ -1054,6 +1056,7 @@ def train_fit_cmd(
     dropout: Optional[float] = typer.Option(None, "--dropout", help="Dropout (0.2).", rich_help_panel=EXPERT),
     lr: Optional[float] = typer.Option(None, "--lr", help="Adam learning rate (1e-3).", rich_help_panel=EXPERT),
     split: Optional[str] = _T_SPLIT, test_shapes: Optional[str] = _T_TEST_SHAPES,
+    validation_motions: Optional[int] = _T_VALID,
     time_budget: Optional[float] = _T_BUDGET, restart: bool = _T_RESTART, tensorboard: bool = _T_TB,
     seed: int = typer.Option(0, "--seed", help="Random seed."), body: Optional[str] = _T_BODY,
 ) -> None:
@@ -1061,7 +1064,7 @@ def train_fit_cmd(
     _train("fit", dataset=dataset, out=out, device=device, epochs=epochs, batch_size=batch_size, hidden=hidden,
            dropout=dropout, lr=lr, window=None, features=None, split=split, test_shapes=test_shapes,
            time_budget=time_budget, restart=restart, tensorboard=tensorboard, seed=seed, baselines=False,
-           val_every=None, grad_clip=None, max_frames=None, body=body)
+           val_every=None, grad_clip=None, max_frames=None, body=body, validation_motions=validation_motions)
 
 
 @train_app.command("wrinkle")
@@ -1078,8 +1081,12 @@ def train_wrinkle_cmd(
     features: Optional[str] = typer.Option(None, "--features", help="Motion descriptor: pose_velocity (default) or "
                                            "pose (thesis).", rich_help_panel=EXPERT),
     split: Optional[str] = _T_SPLIT, test_shapes: Optional[str] = _T_TEST_SHAPES,
+    validation_motions: Optional[int] = _T_VALID,
+    patience: Optional[int] = typer.Option(None, "--patience", help="With validation motions: stop once this many "
+                                           "validations in a row gained less than 1% (0: never)."),
     time_budget: Optional[float] = _T_BUDGET, restart: bool = _T_RESTART, tensorboard: bool = _T_TB,
-    val_every: Optional[int] = typer.Option(None, "--val-every", help="Held-out-motion error every N epochs (10).",
+    val_every: Optional[int] = typer.Option(None, "--val-every", help="Validation error (the validation motions', "
+                                            "else the held-out motions') every N epochs (10).",
                                             rich_help_panel=EXPERT),
     grad_clip: Optional[float] = typer.Option(None, "--grad-clip", help="Clip the gradient norm (default: off).",
                                               rich_help_panel=EXPERT),
@@ -1092,7 +1099,8 @@ def train_wrinkle_cmd(
     _train("wrinkle", dataset=dataset, out=out, device=device, epochs=epochs, batch_size=batch_size, hidden=hidden,
            dropout=dropout, lr=lr, window=window, features=features, split=split, test_shapes=test_shapes,
            time_budget=time_budget, restart=restart, tensorboard=tensorboard, seed=seed, baselines=not no_baselines,
-           val_every=val_every, grad_clip=grad_clip, max_frames=max_frames, body=body)
+           val_every=val_every, grad_clip=grad_clip, max_frames=max_frames, body=body,
+           validation_motions=validation_motions, patience=patience)
 
 
 @train_app.command("snug")

@@ -143,3 +143,13 @@ def test_a_snug_model_plays_beside_the_simulation(store, tmp_path, capsys):
 
     meshes = read_usd_meshes(usd)
     assert "garment_ours" in meshes and meshes["garment_ours"].num_frames == 5
+
+
+def test_train_cli_validation_options_reach_the_split_and_the_run(store, tmp_path, capsys):
+    # The store has one training motion: none can be kept for validation, and patience needs one.
+    code, _, err = run(["train", "wrinkle", "--dataset", str(store), "--out", str(tmp_path / "a"),
+                        "--validation-motions", "1"], capsys)
+    assert code != 0 and "1 validation motions asked for, but the split has 1 training motions" in err
+    code, _, err = run(["train", "wrinkle", "--dataset", str(store), "--out", str(tmp_path / "b"), "--epochs", "2",
+                        "--hidden", "8", "--patience", "3"], capsys)
+    assert code != 0 and "patience needs a split with validation motions" in err

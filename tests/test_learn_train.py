@@ -134,3 +134,57 @@ def test_models_of_one_folder_share_a_split(data, tmp_path):
     train_fit(data, tmp_path, make_split(data, "motion"), config=FitConfig(epochs=2))
     with pytest.raises(InputError, match="another split"):
         train_fit(data, tmp_path, make_split(data, "shape"), config=FitConfig(epochs=2))
+
+
+def test_validation_motions_leave_training_and_nothing_else(data):
+    import zlib
+
+    from simgen.learn import Split
+
+    base = make_split(data, "motion")
+    train_motions = sorted({data.sequences[i].motion for i in base.train_sequences})
+    split = make_split(data, "motion", validation_motions=1)
+    (first,) = sorted(train_motions, key=lambda m: zlib.crc32(m.encode()))[:1]
+    assert {data.sequences[i].motion for i in split.validation} == {first}
+    # Every shape of that motion, taken from training and from nowhere else.
+    assert sorted(split.validation) == sorted(i for i in base.train_sequences if data.sequences[i].motion == first)
+    assert sorted(split.train_sequences + split.validation) == sorted(base.train_sequences)
+    assert split.test == base.test and split.train_shapes == base.train_shapes
+    named = make_split(data, "shape", validation_motions=["walk", "squat"])
+    assert {data.sequences[i].motion for i in named.validation} == {"walk", "squat"}
+    assert all(data.sequences[i].shape_id not in named.test_shapes for i in named.validation)
+    assert Split.from_dict(named.to_dict()) == named and "validation" not in base.to_dict()
+    for bad, match in ((["dance"], "'dance' is not a training motion"), (train_motions, "every training motion"),
+                       (len(train_motions), "needs at least one left")):
+        with pytest.raises(InputError, match=match):
+            make_split(data, "motion", validation_motions=bad)
+
+
+def test_patience_stops_a_run_whose_validation_error_stays(data, tmp_path):
+    split = make_split(data, "motion", validation_motions=1)
+    # lr = 0: the weights never move, so the first validation is the best and no later one gains 1%.
+    cfg = WrinkleConfig(hidden=16, epochs=50, window=8, batch_size=5, lr=0.0, val_every=1, patience=2)
+    r = train_wrinkle(data, tmp_path, split, config=cfg)
+    assert (r.stopped, r.epochs, r.best_epoch) == ("converged", 3, 1)
+    with pytest.raises(InputError, match="patience needs a split with validation motions"):
+        train_wrinkle(data, tmp_path / "b", make_split(data, "motion"), config=cfg)
+
+
+def test_the_saved_wrinkle_model_is_the_best_validations(data, tmp_path):
+    from simgen.learn import load_model, stack_sequences
+    from simgen.learn.train import _wrinkle_val_error
+
+    split = make_split(data, "motion", validation_motions=1)
+    cfg = WrinkleConfig(hidden=32, epochs=8, window=8, batch_size=3, lr=0.03, dropout=0.0, val_every=1)
+    r = train_wrinkle(data, tmp_path, split, config=cfg)
+    rows = [line.split(",") for line in (tmp_path / "wrinkle" / "log.csv").read_text().splitlines()[1:]]
+    logged = {int(row[0]): float(row[3]) for row in rows}
+    assert r.stopped == "epochs" and r.best_epoch == min(logged, key=logged.get)
+    assert r.val_error_cm == pytest.approx(min(logged.values()), rel=1e-6)
+    gru = load_model(tmp_path / "wrinkle", identity=data.identity)
+    batch = stack_sequences(data, split.validation, feature_mode=cfg.feature_mode, target="wrinkle")
+    assert _wrinkle_val_error(gru, batch) == pytest.approx(logged[r.best_epoch], rel=1e-5)
+    assert gru.saved_config["training"]["validation"]["best_epoch"] == r.best_epoch
+    # Resumed with more epochs, the run keeps its best so far.
+    more = train_wrinkle(data, tmp_path, split, config=WrinkleConfig(**{**cfg.__dict__, "epochs": 9}))
+    assert more.epochs == 9 and more.val_error_cm <= r.val_error_cm

@@ -26,7 +26,7 @@ def _load_data(dataset: str, progress_factory, *, body=None, max_frames: int | N
         return load_garment_data(dataset, body=body, max_frames=max_frames, progress=update)
 
 
-def _split(data, out: Path, split: str | None, test_shapes: str | None):
+def _split(data, out: Path, split: str | None, test_shapes: str | None, validation_motions: int | None = None):
     from simgen.learn.data import SPLIT_MODES, make_split
     from simgen.learn.garment_model import load_split
 
@@ -34,19 +34,20 @@ def _split(data, out: Path, split: str | None, test_shapes: str | None):
         raise InputError(f"--split must be one of {', '.join(SPLIT_MODES)}, got {split!r}")
     shapes = [s.strip() for s in test_shapes.split(",") if s.strip()] if test_shapes else None
     existing = load_split(out)
-    if existing is not None and split is None and shapes is None:
+    if existing is not None and split is None and shapes is None and validation_motions is None:
         missing = [i for i in existing.train_sequences if i not in data.sequences]
         if missing:
             raise InputError(f"{out} was trained on sequence {missing[0]!r}, which dataset {data.source} lacks")
         return existing
-    return make_split(data, split or "motion", test_shapes=shapes)
+    return make_split(data, split or "motion", test_shapes=shapes, validation_motions=validation_motions)
 
 
 def run_train(kind: str, *, dataset: str, out: Path, device: str, epochs: int | None, batch_size: int | None,
               hidden: int | None, dropout: float | None, lr: float | None, window: int | None, features: str | None,
               split: str | None, test_shapes: str | None, time_budget: float | None, restart: bool,
               tensorboard: bool, seed: int, baselines: bool, val_every: int | None, grad_clip: float | None,
-              max_frames: int | None, body: str | None, echo, progress_factory) -> None:
+              max_frames: int | None, body: str | None, echo, progress_factory, validation_motions: int | None = None,
+              patience: int | None = None) -> None:
     """Train the fit MLP or the wrinkle GRU (+ linear baselines) into OUT."""
     from dataclasses import replace
 
@@ -54,7 +55,8 @@ def run_train(kind: str, *, dataset: str, out: Path, device: str, epochs: int | 
     from simgen.learn.train import FitConfig, WrinkleConfig, fit_linear_baselines, train_fit, train_wrinkle
 
     for name, value, low in (("--epochs", epochs, 1), ("--batch-size", batch_size, 1), ("--hidden", hidden, 1),
-                             ("--window", window, 1), ("--max-frames", max_frames, 1)):
+                             ("--window", window, 1), ("--max-frames", max_frames, 1),
+                             ("--validation-motions", validation_motions, 0), ("--patience", patience, 0)):
         if value is not None and value < low:
             raise InputError(f"{name} must be at least {low}, got {value}")
     if dropout is not None and not 0.0 <= dropout < 1.0:
@@ -67,7 +69,7 @@ def run_train(kind: str, *, dataset: str, out: Path, device: str, epochs: int | 
         raise InputError(f"--features must be one of {', '.join(FEATURE_MODES)}, got {features!r}")
     model_body = _body(body)
     data = _load_data(dataset, progress_factory, body=model_body, max_frames=max_frames)
-    the_split = _split(data, out, split, test_shapes)
+    the_split = _split(data, out, split, test_shapes, validation_motions)
     given = {"epochs": epochs, "batch_size": batch_size, "hidden": hidden, "dropout": dropout, "lr": lr,
              "seed": seed}
     if kind == "fit":
@@ -81,16 +83,21 @@ def run_train(kind: str, *, dataset: str, out: Path, device: str, epochs: int | 
              f"{result.train_loss:.4g}" + (f", held-out shapes {result.val_error_cm:.3f} cm"
                                           if result.val_error_cm is not None else "") + f"; saved {result.folder}")
         return
-    given.update(window=window, feature_mode=features, val_every=val_every, grad_clip=grad_clip)
+    given.update(window=window, feature_mode=features, val_every=val_every, grad_clip=grad_clip, patience=patience)
     config = replace(WrinkleConfig(), **{k: v for k, v in given.items() if v is not None})
     progress, update = progress_factory("training the wrinkle GRU", config.epochs)
     with progress:
         result = train_wrinkle(data, out, the_split, config=config, device=device, time_budget=time_budget,
                                resume=not restart, tensorboard=tensorboard, body=model_body,
                                progress=lambda e, total, info: update(e, total))
+    if result.val_error_cm is None:
+        val = ""
+    elif the_split.validation:
+        val = f", validation {result.val_error_cm:.3f} cm (unposed; the saved weights, epoch {result.best_epoch})"
+    else:
+        val = f", held-out motions {result.val_error_cm:.3f} cm (unposed)"
     echo(f"wrinkle: {result.epochs} epochs ({result.stopped}), {result.steps} steps, {result.seconds:.1f} s; train "
-         f"loss {result.train_loss:.4g}" + (f", held-out motions {result.val_error_cm:.3f} cm (unposed)"
-                                           if result.val_error_cm is not None else "") + f"; saved {result.folder}")
+         f"loss {result.train_loss:.4g}{val}; saved {result.folder}")
     if baselines:
         paths = fit_linear_baselines(data, out, the_split, feature_mode=config.feature_mode, body=model_body)
         echo("linear baselines: " + ", ".join(str(p) for p in paths.values()))

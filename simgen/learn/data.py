@@ -17,6 +17,11 @@ Splits (:func:`make_split`):
 - ``"shape"`` (ours): additionally hold out body shapes (by default the most extreme ones, i.e.
   extrapolation beyond the training range); the fit MLP and the GRU never see them.
 
+Either split may keep whole training motions out of training as a validation set
+(``validation_motions``): their sequences at the training shapes pick the wrinkle GRU's weights and
+tell it when to stop (:class:`simgen.learn.train.WrinkleConfig`), so that neither looks at the
+held-out motions the model is tested on.
+
 Sequences whose betas change over time (shape sweeps, thesis Fig. 4.6) are never trained on; they
 form their own test group.
 """
@@ -245,7 +250,8 @@ class Split:
 
     by: "motion" or "shape"; train_sequences; test: group name -> sequence ids, groups
     "held_out_motion", "held_out_shape", "held_out_both", "shape_sweep" (empty ones dropped);
-    train_shapes / test_shapes: shape ids for the fit MLP.
+    train_shapes / test_shapes: shape ids for the fit MLP; validation: sequence ids of training
+    motions kept out of training (the validation motions at the training shapes; may be empty).
     """
 
     by: str
@@ -253,16 +259,20 @@ class Split:
     test: dict[str, list[str]]
     train_shapes: list[str]
     test_shapes: list[str]
+    validation: list[str] = field(default_factory=list)
 
     def to_dict(self) -> dict:
-        return {"by": self.by, "train_sequences": self.train_sequences, "test": self.test,
-                "train_shapes": self.train_shapes, "test_shapes": self.test_shapes}
+        d = {"by": self.by, "train_sequences": self.train_sequences, "test": self.test,
+             "train_shapes": self.train_shapes, "test_shapes": self.test_shapes}
+        if self.validation:   # a split without one reads as the files written before it existed
+            d["validation"] = self.validation
+        return d
 
     @classmethod
     def from_dict(cls, d: dict) -> "Split":
         return cls(by=d["by"], train_sequences=list(d["train_sequences"]),
                    test={k: list(v) for k, v in d["test"].items()}, train_shapes=list(d["train_shapes"]),
-                   test_shapes=list(d["test_shapes"]))
+                   test_shapes=list(d["test_shapes"]), validation=list(d.get("validation", [])))
 
 
 def extreme_shapes(data: GarmentData) -> list[str]:
@@ -274,11 +284,14 @@ def extreme_shapes(data: GarmentData) -> list[str]:
     return sorted(sid for sid, r in reach.items() if top > 0 and r >= top - 1e-6)
 
 
-def make_split(data: GarmentData, by: str = "motion", *, test_shapes=None, require_train: bool = True) -> Split:
+def make_split(data: GarmentData, by: str = "motion", *, test_shapes=None, validation_motions=None,
+               require_train: bool = True) -> Split:
     """Split sequences by held-out motion (thesis) or by held-out motion and shape (ours); see the
     module docstring. test_shapes: shape ids to hold out with by="shape" (default: the extremes);
-    require_train: refuse a split without training sequences (False: data holding only the
-    sequences to test, as ``simgen eval compare`` reads them)."""
+    validation_motions: training motions whose sequences go to ``Split.validation`` instead of
+    training, as names, or as a number of them, taken in the order of their names' CRC-32 (a fixed
+    choice that nobody made; None or 0: none); require_train: refuse a split without training
+    sequences (False: data holding only the sequences to test, as ``simgen eval compare`` reads them)."""
     if by not in SPLIT_MODES:
         raise InputError(f"split {by!r} is not one of {', '.join(SPLIT_MODES)}")
     all_shapes = sorted(data.shapes)
@@ -309,11 +322,36 @@ def make_split(data: GarmentData, by: str = "motion", *, test_shapes=None, requi
             groups["held_out_shape"].append(sid)
         else:
             train.append(sid)
+    validation = _validation(data, train, validation_motions)
+    train = [sid for sid in train if sid not in set(validation)]
     if not train and require_train:
         raise InputError("the split leaves no training sequence (need sequences of 'train' motions with a "
                          "training shape)")
     return Split(by=by, train_sequences=train, test={k: v for k, v in groups.items() if v},
-                 train_shapes=[s for s in all_shapes if s not in held], test_shapes=sorted(held))
+                 train_shapes=[s for s in all_shapes if s not in held], test_shapes=sorted(held),
+                 validation=validation)
+
+
+def _validation(data: GarmentData, train: list[str], motions) -> list[str]:
+    """The sequences of ``train`` whose motion is a validation motion (:func:`make_split`)."""
+    import zlib
+
+    available = sorted({data.sequences[sid].motion for sid in train})
+    if motions is None or isinstance(motions, int):
+        count = int(motions or 0)
+        if not 0 <= count < max(len(available), 1):
+            raise InputError(f"{count} validation motions asked for, but the split has {len(available)} training "
+                             f"motions and needs at least one left to train on")
+        chosen = set(sorted(available, key=lambda m: zlib.crc32(m.encode()))[:count])
+    else:
+        chosen = set(motions)
+        unknown = sorted(chosen - set(available))
+        if unknown:
+            raise InputError(f"validation motion {unknown[0]!r} is not a training motion of the dataset (training "
+                             f"motions: {', '.join(available)})")
+        if chosen == set(available):
+            raise InputError("the validation motions are every training motion; leave at least one to train on")
+    return [sid for sid in train if data.sequences[sid].motion in chosen]
 
 
 # ------------------------------------------------------------------------------------ tensors

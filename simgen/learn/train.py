@@ -57,7 +57,9 @@ class FitConfig:
 class WrinkleConfig:
     """Wrinkle GRU training (thesis defaults): hidden units, dropout, Adam learning rate, epochs,
     batch size (sequences per batch), TBPTT window [frames], motion descriptor, seed, gradient-norm
-    clip (None: no clipping, as the thesis), validation every N epochs (0: never)."""
+    clip (None: no clipping, as the thesis), validation every N epochs (0: never), patience: with a
+    validation split, stop once this many validations in a row have not lowered the validation
+    error by CONVERGED_GAIN of its value at the last such gain (0: run every epoch)."""
 
     hidden: int = 1500
     dropout: float = 0.2
@@ -69,12 +71,19 @@ class WrinkleConfig:
     seed: int = 0
     grad_clip: float | None = None
     val_every: int = 10
+    patience: int = 0
+
+
+#: A validation error this share below the reference counts as progress (WrinkleConfig.patience).
+CONVERGED_GAIN = 0.01
 
 
 @dataclass
 class TrainResult:
     """What a run did: folder, epochs completed (in total, resumed ones included), optimiser steps of
-    this call, seconds of this call, why it stopped ("epochs" or "time budget"), last losses."""
+    this call, seconds of this call, why it stopped ("epochs", "time budget" or "converged"), last
+    training loss, the validation error [cm] of the saved model (with a validation split: the best,
+    whose weights are saved, reached after best_epoch epochs; else the last held-out one)."""
 
     folder: Path
     epochs: int
@@ -83,6 +92,7 @@ class TrainResult:
     stopped: str
     train_loss: float
     val_error_cm: float | None
+    best_epoch: int | None = None
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -170,9 +180,10 @@ def _load_state(folder: Path, settings: dict, resume: bool, device) -> dict | No
     state = torch.load(path, map_location=device, weights_only=True)
     old = json.loads(state["settings"])
 
-    def comparable(d: dict) -> dict:  # more (or fewer) epochs continue the same run
+    def comparable(d: dict) -> dict:  # more (or fewer) epochs, another patience: the same run continues
         d = json.loads(json.dumps(d))
         d.get("config", {}).pop("epochs", None)
+        d.get("config", {}).pop("patience", None)
         return d
 
     if comparable(old) != comparable(settings):
@@ -185,13 +196,14 @@ def _load_state(folder: Path, settings: dict, resume: bool, device) -> dict | No
     return state
 
 
-def _save_state(folder: Path, model, optimizer, epoch: int, settings: dict, generator: torch.Generator) -> None:
+def _save_state(folder: Path, model, optimizer, epoch: int, settings: dict, generator: torch.Generator,
+                extra: dict | None = None) -> None:
     import io
 
     buf = io.BytesIO()
     torch.save({"model": model.state_dict(), "optimizer": optimizer.state_dict(), "epoch": epoch,
                 "settings": json.dumps(settings), "rng": generator.get_state(),
-                "torch_rng": torch.get_rng_state()}, buf)
+                "torch_rng": torch.get_rng_state(), **(extra or {})}, buf)
     atomic_write_bytes(folder / STATE_FILE, buf.getvalue())
 
 
@@ -328,13 +340,44 @@ def tbptt_batch(model: WrinkleGRU, inputs: torch.Tensor, targets: torch.Tensor, 
     return total, count, steps, False
 
 
+class _Selection:
+    """The best validation so far (its error [cm], epoch and weights, kept on the model's device) and
+    the count of validations since the error last fell by CONVERGED_GAIN (WrinkleConfig.patience)."""
+
+    def __init__(self) -> None:
+        self.best, self.best_epoch, self.weights = None, None, None
+        self.reference, self.stale = None, 0
+
+    def update(self, error: float, epoch: int, model) -> None:
+        if self.best is None or error < self.best:
+            self.best, self.best_epoch = error, epoch
+            self.weights = {k: v.detach().clone() for k, v in model.state_dict().items()}
+        if self.reference is None or error < self.reference * (1.0 - CONVERGED_GAIN):
+            self.reference, self.stale = error, 0
+        else:
+            self.stale += 1
+
+    def state(self) -> dict:
+        return {"selection": {"best": self.best, "best_epoch": self.best_epoch, "reference": self.reference,
+                              "stale": self.stale}, "best_model": self.weights or {}}
+
+    def load(self, state: dict) -> None:
+        sel = state.get("selection")
+        if sel:
+            self.best, self.best_epoch = sel["best"], sel["best_epoch"]
+            self.reference, self.stale = sel["reference"], sel["stale"]
+            self.weights = dict(state["best_model"]) or None
+
+
 def train_wrinkle(data: GarmentData, out: str | Path, split: Split, *, config: WrinkleConfig | None = None,
                   device="cpu", time_budget: float | None = None, resume: bool = True, tensorboard: bool = False,
                   body=None, progress=None, checkpoint_every: float = 120.0) -> TrainResult:
     """Train R_L on the wrinkle ground truth of the split's training sequences; write OUT/wrinkle/.
 
-    Validation error (unposed, cm) on the held-out-motion sequences every ``config.val_every``
-    epochs (logged, not used to pick a model). progress(epoch, epochs, info) after every epoch.
+    Validation error (unposed, cm) every ``config.val_every`` epochs: with ``split.validation`` on
+    those sequences, which pick the saved weights (the best validation's) and, with
+    ``config.patience``, stop the run ("converged"); without, on the held-out-motion sequences,
+    logged only. progress(epoch, epochs, info) after every epoch.
     checkpoint_every [s]: save the model and the run state at the first epoch end after this long
     (and always at the end). A time-budget stop in the middle of an epoch keeps the weights of the
     steps done; a resumed run starts that epoch again.
@@ -350,7 +393,12 @@ def train_wrinkle(data: GarmentData, out: str | Path, split: Split, *, config: W
     folder.mkdir(parents=True, exist_ok=True)
     train = stack_sequences(data, split.train_sequences, feature_mode=config.feature_mode, target="wrinkle",
                             device=dev)
-    val_ids = [i for i in split.test.get("held_out_motion", []) if data.sequences[i].wrinkle is not None]
+    if config.patience and not split.validation:
+        raise InputError("a wrinkle GRU patience needs a split with validation motions (make_split's "
+                         "validation_motions, --validation-motions)")
+    selecting = bool(split.validation)
+    val_ids = [i for i in (split.validation if selecting else split.test.get("held_out_motion", []))
+               if data.sequences[i].wrinkle is not None]
     val = stack_sequences(data, val_ids, feature_mode=config.feature_mode, target="wrinkle",
                           device=dev) if val_ids else None
     settings = {"config": asdict(config), "split": split.to_dict(), "identity": _identity(data)}
@@ -364,28 +412,41 @@ def train_wrinkle(data: GarmentData, out: str | Path, split: Split, *, config: W
     optimizer = torch.optim.Adam(model.parameters(), lr=config.lr)
     generator = torch.Generator().manual_seed(config.seed)
     state = _load_state(folder, settings, resume, dev)
-    start = 0
+    start, selection = 0, _Selection()
     if state is not None:
         model.load_state_dict(state["model"])
         optimizer.load_state_dict(state["optimizer"])
         generator.set_state(state["rng"].cpu())
         torch.set_rng_state(state["torch_rng"].cpu())
         start = int(state["epoch"])
+        selection.load(state)
     log = _Logger(folder, ["epoch", "steps", "train_loss", "val_error_cm", "seconds"], tensorboard)
     t0, steps, stopped, loss_value, val_cm = time.monotonic(), 0, "epochs", float("nan"), None
     lengths = torch.tensor(train.lengths)
     epochs_done = start
 
     def save() -> None:
-        _save_state(folder, model, optimizer, epochs_done, settings, generator)
-        save_model(model, folder, identity=_identity(data), training={
-            "dataset": data.source, "split": split.by, "epochs": epochs_done, "config": asdict(config),
-            "train_sequences": len(split.train_sequences), "train_frames": int(lengths.sum()),
-            "train_loss": loss_value, "val_error_cm": val_cm})
+        _save_state(folder, model, optimizer, epochs_done, settings, generator, selection.state())
+        training = {"dataset": data.source, "split": split.by, "epochs": epochs_done, "config": asdict(config),
+                    "train_sequences": len(split.train_sequences), "train_frames": int(lengths.sum()),
+                    "train_loss": loss_value, "val_error_cm": val_cm,
+                    "validation": ({"motions": sorted({data.sequences[i].motion for i in split.validation}),
+                                    "sequences": len(split.validation), "best_epoch": selection.best_epoch}
+                                   if selecting else "held-out motions, logged only")}
+        if selection.weights is None:
+            save_model(model, folder, identity=_identity(data), training=training)
+            return
+        current = {k: v.detach().clone() for k, v in model.state_dict().items()}
+        model.load_state_dict(selection.weights)      # the saved model is the best validation's
+        save_model(model, folder, identity=_identity(data), training={**training, "val_error_cm": selection.best})
+        model.load_state_dict(current)
 
     out_of_time, last_save = False, t0
     try:
         for epoch in range(start, config.epochs):
+            if config.patience and selection.stale >= config.patience:
+                stopped = "converged"
+                break
             model.train()
             perm = torch.randperm(len(lengths), generator=generator)
             total, count = 0.0, 0
@@ -407,6 +468,8 @@ def train_wrinkle(data: GarmentData, out: str | Path, split: Split, *, config: W
             if val is not None and config.val_every > 0 and (epochs_done % config.val_every == 0 or out_of_time
                                                              or epochs_done == config.epochs):
                 val_cm = val_now = _wrinkle_val_error(model, val)
+                if selecting and not out_of_time:     # whole epochs only: a resumed run redoes a cut one
+                    selection.update(val_now, epochs_done, model)
             log.row({"epoch": epochs_done, "steps": steps, "train_loss": loss_value,
                      "val_error_cm": val_now if val_now is not None else "",
                      "seconds": round(time.monotonic() - t0, 3)})
@@ -421,7 +484,10 @@ def train_wrinkle(data: GarmentData, out: str | Path, split: Split, *, config: W
         save()
     finally:
         log.close()
-    return TrainResult(folder, epochs_done, steps, time.monotonic() - t0, stopped, loss_value, val_cm)
+    if selection.best is not None:
+        val_cm = selection.best
+    return TrainResult(folder, epochs_done, steps, time.monotonic() - t0, stopped, loss_value, val_cm,
+                       selection.best_epoch)
 
 
 # ------------------------------------------------------------------------------------ linear baselines
