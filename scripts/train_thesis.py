@@ -1,29 +1,36 @@
-"""Thesis ch. 4 on the GPU machine in one call: generate a T-shirt dataset subset, train the garment fit
-MLP and the wrinkle GRU, evaluate against LBS and linear regression, return metrics, plots and the
-small fit model -- everything inside one time budget (a device call lasts at most 10 minutes).
+"""Thesis ch. 4 on a GPU machine in one call: generate the thesis-tshirt store (in full with
+--full, else a subset), train the garment fit MLP and the wrinkle GRU on one or both splits,
+evaluate against LBS and linear regression, return metrics, plots and the small fit model --
+everything inside one time budget.
 
 Phases (each bounded; the store, the models and the training state stay in --work, so a second run
-on the same warm machine resumes generation and training instead of starting over):
+on the same machine resumes generation and training instead of starting over):
 
-1. generate: ``simgen.dataset.generate_dataset`` on the thesis-tshirt preset, restricted to a motion
-   and shape subset and a frame cap, test motions first so that a budget cut still leaves held-out
-   motions; stops starting batches after --gen-budget seconds;
-2. train: the fit MLP (2000 epochs, thesis), then the wrinkle GRU (1500 units, TBPTT 90, batch 128)
-   until the training budget runs out (checkpointed every minute), then the linear baselines;
-3. evaluate: ``simgen.learn.evaluate_garment`` (per-frame errors, shape generalisation, vertices
-   inside the body, physics terms, ms/frame on the CPU and the GPU, model sizes).
+1. generate: ``simgen.dataset.generate_dataset`` on the preset: with --full every motion, shape and
+   frame; else a motion and shape subset with a frame cap, test motions first so that a budget cut
+   still leaves held-out motions; stops starting jobs after --gen-budget seconds;
+2. per split of --splits (motion: the thesis's held-out motions; shape: the extreme shapes held out
+   as well), in WORK/model_<split>: the fit MLP (2000 epochs, thesis), then the wrinkle GRU with
+   --validation-motions training motions kept out of training: every --val-every epochs their
+   error picks the saved weights, and --patience validations in a row without a 1% gain stop it
+   (else --epochs or the split's share of the time left; checkpointed every minute), then the
+   linear baselines;
+3. evaluate each split: ``simgen.learn.evaluate_garment`` (per-frame errors, shape generalisation,
+   vertices inside the body, physics terms, ms/frame on the CPU and the GPU, model sizes).
 
-What comes back in --out (at most 8 files, each well under 16 MiB): metrics.json, summary.txt,
-the plots (if matplotlib is there; otherwise draw them on the CPU machine with ``--plots-from``),
-fit_model.tar (template/, fit/, split.json, both training logs, the wrinkle model's config without
-its ~110 MB of weights) and compare.npz (one held-out sequence: simulation, model, LBS and the body,
-float16, for USD on the CPU machine with ``--usd-from``). No usd-core or pyvista is imported here.
+What comes back in --out: metrics.json (per split under "splits"), summary.txt, per split the plots
+(``*_<split>.png``, if matplotlib is there; otherwise draw them on the CPU machine with
+``--plots-from``), fit_model_<split>.tar (template/, fit/, split.json, both training logs, the
+wrinkle model's config without its ~110 MB of weights) and compare_<split>.npz (one held-out
+sequence: simulation, model, LBS and the body, float16, for USD on the CPU machine with
+``--usd-from``). No usd-core or pyvista is imported here.
 
-    # on the device machine (after the warp install recipe of ../shared/gpu/README.md):
-    python scripts/train_thesis.py --out $OUT --work /root/thesis --device cuda
+    # on the GPU machine (after the warp install recipe of ../shared/gpu/README.md):
+    python scripts/train_thesis.py --full --splits motion shape --total-budget 1800 --gen-budget 600 \\
+        --out results --work /root/thesis --device cuda
     # back on the CPU machine:
     python scripts/train_thesis.py --plots-from OUTDIR            # plots from metrics.json + logs
-    python scripts/train_thesis.py --usd-from OUTDIR/compare.npz --usd compare.usdc
+    python scripts/train_thesis.py --usd-from OUTDIR/compare_motion.npz --usd compare.usdc
 """
 
 from __future__ import annotations
@@ -95,13 +102,82 @@ def _compare_npz(model, data, split, path: Path, frames: int) -> dict:
     return {"sequence": sid, "frames": n, "bytes": path.stat().st_size}
 
 
+def _generate(args, work: Path, left, phase) -> Path:
+    """Phase 1: the store in WORK/dataset (the preset in full with --full, else the subset), within
+    --gen-budget and what the later phases need; a later run resumes it."""
+    from simgen.dataset import generate_dataset, load_spec
+
+    spec = load_spec(args.spec)
+    if not args.full:
+        spec = spec.with_overrides(motions=args.motions, shapes=args.shapes, max_frames=args.max_frames)
+    spec = spec.with_overrides(batch_size=args.gen_batch, substeps=args.substeps)
+    store = work / "dataset"
+    gen_budget = min(args.gen_budget, left() - len(args.splits) * (args.min_train + args.eval_reserve))
+    if gen_budget > 5:
+        _log(f"generating into {store} for at most {gen_budget:.0f} s")
+        reports = generate_dataset(spec, out=str(store), time_budget=gen_budget, log=_log)
+        phase("generate", budget_s=round(gen_budget, 1), stores=[r.to_dict() for r in reports])
+    else:
+        phase("generate", skipped="no time left for generation; using what the store holds")
+    return store
+
+
+def _train_split(args, data, by: str, work: Path, out: Path, device: str, budget: float, phase) -> dict:
+    """Phases 2-3 for one split: the fit MLP, the wrinkle GRU (to convergence on the validation
+    motions or the budget), the baselines, then the evaluation; WORK/model_<by> keeps the run."""
+    import shutil
+
+    from simgen.learn import (FitConfig, WrinkleConfig, evaluate_garment, fit_linear_baselines, load_garment_model,
+                              make_split, train_fit, train_wrinkle)
+
+    t0 = time.monotonic()
+    split = make_split(data, by, validation_motions=args.validation_motions)
+    counts = {k: len(v) for k, v in split.test.items()}
+    frames = sum(data.sequences[i].num_frames for i in split.train_sequences)
+    _log(f"split {by}: train {len(split.train_sequences)} sequences ({frames} frames), validation "
+         f"{len(split.validation)}, test {counts}")
+    phase(f"load_{by}", train_sequences=len(split.train_sequences), train_frames=frames, test=counts,
+          validation=len(split.validation), test_shapes=split.test_shapes)
+    model_dir = work / f"model_{by}"
+    old_split = model_dir / "split.json"
+    if old_split.is_file() and json.loads(old_split.read_text()) != split.to_dict():
+        _log(f"the dataset grew since the last run: the {by} split's training starts over")
+        shutil.rmtree(model_dir)
+    fit = train_fit(data, model_dir, split, config=FitConfig(epochs=args.fit_epochs), device=device,
+                    time_budget=max(5.0, min(args.fit_budget, budget - args.eval_reserve - 30)))
+    phase(f"train_fit_{by}", **fit.to_dict())
+    wr_budget = budget - (time.monotonic() - t0) - args.eval_reserve - 20  # 20 s: baselines + packing
+    wcfg = WrinkleConfig(hidden=args.hidden, window=args.window, batch_size=args.batch_size, epochs=args.epochs,
+                         feature_mode=args.features, val_every=args.val_every,
+                         patience=args.patience if split.validation else 0)
+    _log(f"training the wrinkle GRU ({by} split) for at most {wr_budget:.0f} s")
+    wr = train_wrinkle(data, model_dir, split, config=wcfg, device=device, time_budget=max(5.0, wr_budget),
+                       checkpoint_every=60.0,
+                       progress=lambda e, n, info: _log(f"epoch {e}: loss {info['loss']:.4g}, validation "
+                                                        f"{info['val_cm']}") if e % 50 == 0 else None)
+    phase(f"train_wrinkle_{by}", **wr.to_dict())
+    fit_linear_baselines(data, model_dir, split, feature_mode=args.features)
+    ev_dir = work / f"eval_{by}"
+    metrics = evaluate_garment(model_dir, data, ev_dir, device=device, timing_frames=args.timing_frames,
+                               inside_stride=args.inside_stride, max_sequences=args.eval_sequences)
+    phase(f"evaluate_{by}")
+    model = load_garment_model(model_dir, identity=data.identity, device=device)
+    metrics["compare"] = _compare_npz(model, data, split, out / f"compare_{by}.npz", args.compare_frames)
+    _tar_fit_model(model_dir, out / f"fit_model_{by}.tar")
+    for name in ("error_per_frame.png", "shape_generalization.png", "training.png"):
+        if (ev_dir / name).is_file():
+            (out / name.replace(".png", f"_{by}.png")).write_bytes((ev_dir / name).read_bytes())
+    metrics.pop("plots", None)
+    return metrics
+
+
 def run(args) -> int:
     t0 = time.monotonic()
     deadline = t0 + args.total_budget
     out, work = Path(args.out), Path(args.work)
     out.mkdir(parents=True, exist_ok=True)
     work.mkdir(parents=True, exist_ok=True)
-    report: dict = {"args": vars(args), "phases": {}, "commit": os.environ.get("SIMGEN_COMMIT", "unknown")}
+    report: dict = {"args": vars(args), "phases": {}, "splits": {}, "commit": os.environ.get("SIMGEN_COMMIT", "unknown")}
 
     def left() -> float:
         return deadline - time.monotonic()
@@ -120,74 +196,21 @@ def run(args) -> int:
         device = args.device if args.device != "cuda" else "cuda:0"
         report["device"] = torch.cuda.get_device_name() if torch.cuda.is_available() else "cpu"
         report["torch"] = torch.__version__
+        store = _generate(args, work, left, phase)
 
-        # ---------------------------------------------------------------- 1. generate
-        from simgen.dataset import generate_dataset, load_spec
-
-        spec = load_spec(args.spec).with_overrides(motions=args.motions, shapes=args.shapes,
-                                                   max_frames=args.max_frames, batch_size=args.gen_batch,
-                                                   substeps=args.substeps)
-        store = work / "dataset"
-        gen_budget = min(args.gen_budget, left() - args.min_train - args.eval_reserve)
-        if gen_budget > 5:
-            _log(f"generating into {store} for at most {gen_budget:.0f} s")
-            reports = generate_dataset(spec, out=str(store), time_budget=gen_budget, log=_log)
-            phase("generate", budget_s=round(gen_budget, 1), stores=[r.to_dict() for r in reports])
-        else:
-            phase("generate", skipped="no time left for generation; using what the store holds")
-
-        # ---------------------------------------------------------------- 2. train
-        from simgen.learn import (FitConfig, WrinkleConfig, fit_linear_baselines, load_garment_data, make_split,
-                                  train_fit, train_wrinkle)
+        from simgen.learn import format_summary, load_garment_data
 
         data = load_garment_data(store, device=device)
-        split = make_split(data, args.split)
-        counts = {k: len(v) for k, v in split.test.items()}
-        frames = sum(data.sequences[i].num_frames for i in split.train_sequences)
-        _log(f"data: {len(data.sequences)} sequences, {len(data.shapes)} shapes; train {len(split.train_sequences)} "
-             f"sequences ({frames} frames); test {counts}")
-        phase("load", sequences=len(data.sequences), shapes=len(data.shapes), train_sequences=len(split.train_sequences),
-              train_frames=frames, test=counts, split=split.by, test_shapes=split.test_shapes,
-              vertices=data.num_vertices)
-        model_dir = work / "model"
-        old_split = model_dir / "split.json"
-        if old_split.is_file() and json.loads(old_split.read_text()) != split.to_dict():
-            import shutil
-
-            _log("the dataset grew since the last run: training starts over")
-            shutil.rmtree(model_dir)
-        fit = train_fit(data, model_dir, split, config=FitConfig(epochs=args.fit_epochs), device=device,
-                        time_budget=max(5.0, min(args.fit_budget, left() - args.eval_reserve - 30)))
-        phase("train_fit", **fit.to_dict())
-        wr_budget = left() - args.eval_reserve - 20  # 20 s: baselines + packing
-        wcfg = WrinkleConfig(hidden=args.hidden, window=args.window, batch_size=args.batch_size, epochs=args.epochs,
-                             feature_mode=args.features, val_every=args.val_every)
-        _log(f"training the wrinkle GRU for at most {wr_budget:.0f} s")
-        wr = train_wrinkle(data, model_dir, split, config=wcfg, device=device, time_budget=max(5.0, wr_budget),
-                           checkpoint_every=60.0,
-                           progress=lambda e, n, info: _log(f"epoch {e}: loss {info['loss']:.4g}, held-out "
-                                                            f"{info['val_cm']}") if e % 50 == 0 else None)
-        phase("train_wrinkle", **wr.to_dict())
-        fit_linear_baselines(data, model_dir, split, feature_mode=args.features)
-        phase("baselines")
-
-        # ---------------------------------------------------------------- 3. evaluate
-        from simgen.learn import evaluate_garment, format_summary, load_garment_model
-
-        ev_dir = work / "eval"
-        metrics = evaluate_garment(model_dir, data, ev_dir, device=device, timing_frames=args.timing_frames,
-                                   inside_stride=args.inside_stride, max_sequences=args.eval_sequences)
-        phase("evaluate")
-        model = load_garment_model(model_dir, identity=data.identity, device=device)
-        report["compare"] = _compare_npz(model, data, split, out / "compare.npz", args.compare_frames)
-        _tar_fit_model(model_dir, out / "fit_model.tar")
-        for name in ("error_per_frame.png", "shape_generalization.png", "training.png"):
-            if (ev_dir / name).is_file():
-                (out / name).write_bytes((ev_dir / name).read_bytes())
-        metrics.pop("plots", None)
-        report.update(metrics)
+        _log(f"data: {len(data.sequences)} sequences, {len(data.shapes)} shapes")
+        phase("load", sequences=len(data.sequences), shapes=len(data.shapes), vertices=data.num_vertices)
+        summaries = []
+        for k, by in enumerate(args.splits):
+            budget = left() / (len(args.splits) - k)      # what is left, shared by the splits still to run
+            report["splits"][by] = _train_split(args, data, by, work, out, device, budget, phase)
+            summaries.append(f"== split {by}\n" + format_summary(report["splits"][by]))
+            _write_json(out / "metrics.json", report)
         phase("package")
-        summary = format_summary(metrics)
+        summary = "\n\n".join(summaries)
         (out / "summary.txt").write_text(summary + "\n\n" + json.dumps(report["phases"], indent=1) + "\n")
         print(summary)
         status = 0
@@ -203,18 +226,21 @@ def run(args) -> int:
 
 
 def plots_from(folder: Path) -> None:
-    """Draw the plots from a returned metrics.json and fit_model.tar (CPU machine)."""
+    """Draw each split's plots from a returned metrics.json and fit_model_<split>.tar into
+    FOLDER/<split>/ (CPU machine)."""
     from simgen.learn.plots import plot_all
 
     metrics = json.loads((folder / "metrics.json").read_text())
-    model_dir = None
-    tar_path = folder / "fit_model.tar"
-    if tar_path.is_file():
-        with tarfile.open(tar_path) as tar:
-            tar.extractall(folder / "unpacked", filter="data")
-        model_dir = folder / "unpacked" / "model"
-    for p in plot_all(metrics, folder, model_dir=model_dir):
-        print(p)
+    for by, split_metrics in metrics.get("splits", {}).items():
+        model_dir = None
+        tar_path = folder / f"fit_model_{by}.tar"
+        if tar_path.is_file():
+            with tarfile.open(tar_path) as tar:
+                tar.extractall(folder / f"unpacked_{by}", filter="data")
+            model_dir = folder / f"unpacked_{by}" / "model"
+        (folder / by).mkdir(exist_ok=True)
+        for p in plot_all(split_metrics, folder / by, model_dir=model_dir):
+            print(p)
 
 
 def usd_from(npz_path: Path, usd_path: Path) -> None:
@@ -250,7 +276,12 @@ def main() -> int:
     ap.add_argument("--max-frames", type=int, default=150, help="frames kept per clip")
     ap.add_argument("--gen-batch", type=int, default=None, help="sequences per batched solver call")
     ap.add_argument("--substeps", type=int, default=None)
-    ap.add_argument("--split", default="shape", choices=["motion", "shape"])
+    ap.add_argument("--full", action="store_true", help="the preset's whole store (every motion, shape and frame)")
+    ap.add_argument("--splits", nargs="+", default=["shape"], choices=["motion", "shape"],
+                    help="trained and evaluated one after the other, each in WORK/model_<split>")
+    ap.add_argument("--validation-motions", type=int, default=2,
+                    help="training motions kept out to pick the GRU's weights and stop it (0: none)")
+    ap.add_argument("--patience", type=int, default=8, help="validations without a 1%% gain before the GRU stops")
     ap.add_argument("--total-budget", type=float, default=560.0, help="seconds for everything")
     ap.add_argument("--gen-budget", type=float, default=240.0)
     ap.add_argument("--min-train", type=float, default=120.0, help="seconds generation leaves to training at least")

@@ -180,3 +180,38 @@ def test_bench_pool_occupancy_times_busy_and_idle_slots_and_the_parts_of_a_frame
         assert min(parts.values()) >= 0 and run["frame_ms"] >= run["step_ms"] > 0
         # Own times: together they are the synced frames' wall time (the timer's own overhead aside).
         assert sum(parts.values()) == pytest.approx(run["synced_frame_ms"], rel=0.02)
+
+
+def test_train_thesis_generates_trains_both_splits_and_evaluates(tmp_path):
+    """scripts/train_thesis.py at CPU size: a 4-motion subset of the tiny preset, both splits, the
+    GRU stopped by its validation motions; then the CPU-side plots and USD from what it returned."""
+    out, work = tmp_path / "out", tmp_path / "work"
+    args = ["--spec", "tiny", "--motions", "jumping_jacks", "walk", "squat", "walk_fast", "--shapes", "zero", "b1p2",
+            "--max-frames", "5", "--splits", "motion", "shape", "--validation-motions", "1", "--patience", "2",
+            "--val-every", "1", "--epochs", "6", "--fit-epochs", "50", "--hidden", "16", "--window", "4",
+            "--batch-size", "4", "--timing-frames", "3", "--inside-stride", "2", "--eval-sequences", "2",
+            "--compare-frames", "4", "--total-budget", "600", "--gen-budget", "300", "--min-train", "10",
+            "--eval-reserve", "30", "--fit-budget", "5", "--device", "cpu", "--work", str(work)]
+    env = {**os.environ, "PYTHONPATH": str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", "")}
+
+    def script(*argv: str) -> None:
+        proc = subprocess.run([sys.executable, str(REPO / "scripts" / "train_thesis.py"), *argv],
+                              capture_output=True, text=True, env=env, timeout=900)
+        assert proc.returncode == 0, proc.stderr[-2000:]
+
+    script(*args, "--out", str(out))
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert "error" not in metrics and set(metrics["splits"]) == {"motion", "shape"}
+    phases = metrics["phases"]
+    assert phases["load"]["sequences"] == 8
+    for by in ("motion", "shape"):
+        assert phases[f"load_{by}"]["validation"] >= 1
+        wrinkle = phases[f"train_wrinkle_{by}"]
+        assert wrinkle["stopped"] in ("converged", "epochs") and 1 <= wrinkle["best_epoch"] <= wrinkle["epochs"]
+        assert "held_out_motion" in metrics["splits"][by]["groups"]
+        for name in (f"fit_model_{by}.tar", f"compare_{by}.npz", f"training_{by}.png"):
+            assert (out / name).is_file(), name
+    assert metrics["splits"]["shape"]["test_shapes"] == ["b1p2"]
+    script("--plots-from", str(out))
+    script("--usd-from", str(out / "compare_shape.npz"), "--usd", str(tmp_path / "c.usdc"))
+    assert (out / "shape" / "training.png").is_file() and (tmp_path / "c.usdc").stat().st_size > 0
