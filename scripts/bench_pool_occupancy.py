@@ -13,7 +13,7 @@ busy ones, it stays flat.
 With ``--parts`` the timed frames run again with the device synchronised around each part of a
 frame (the solver's stepping, the frame statistics and their pieces, host copies, recording, the
 next frame's targets), each part's own time (its inner parts taken out) averaged per frame under
-its path ("statistics/crossings"); "frame" is what the step spent outside every part. The
+its path ("frame/statistics/measure/crossings"); "frame" is what the step spent outside every part. The
 synchronisation removes any overlap of host and device work, so the parts add up to the synced
 frame, which may be longer than the unsynced one reported beside it.
 
@@ -33,6 +33,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from dataset_bench import _commit, _device, _emit  # noqa: E402  (scripts/ sibling: records and output)
+
+
+_INHERITED = object()   # marks an attribute that the patched class did not define itself
 
 
 class _PartTimer:
@@ -67,12 +70,12 @@ class _PartTimer:
                 if timer._stack:
                     timer._stack[-1][1] += total
 
-        self._undo.append((owner, attr, owner.__dict__[attr] if attr in owner.__dict__ else None))
+        self._undo.append((owner, attr, owner.__dict__.get(attr, _INHERITED)))
         setattr(owner, attr, timed)
 
     def restore(self) -> None:
         for owner, attr, original in reversed(self._undo):
-            if original is None:
+            if original is _INHERITED:
                 delattr(owner, attr)
             else:
                 setattr(owner, attr, original)
@@ -90,14 +93,15 @@ def _frame_parts(pool, frames: int) -> dict:
     from simgen.sim.recorder import JobRecorder
 
     timer = _PartTimer(pool.setup.state.positions.device)
-    for owner, attr, label in ((type(pool), "step", "frame"), (type(pool), "fill", "fill"),
-                               (type(pool), "_frame_targets", "targets"), (type(pool.runner), "run", "stepping"),
-                               (pool_module, "measure_frame", "statistics"), (FrameStats, "measure", "measure"),
-                               (CrossingCounter, "count_points", "crossings"), (FrameStats, "_strain_max", "strain"),
-                               (placement, "placement_rows", "placement"), (wp.Mesh, "refit", "bvh_refit"),
-                               (wp.array, "numpy", "host_copy"), (JobRecorder, "record", "record")):
-        timer.patch(owner, attr, label)
+    patched = ((type(pool), "step", "frame"), (type(pool), "fill", "fill"),
+               (type(pool), "_frame_targets", "targets"), (type(pool.runner), "run", "stepping"),
+               (pool_module, "measure_frame", "statistics"), (FrameStats, "measure", "measure"),
+               (CrossingCounter, "count_points", "crossings"), (FrameStats, "_strain_max", "strain"),
+               (placement, "placement_rows", "placement"), (wp.Mesh, "refit", "bvh_refit"),
+               (wp.array, "numpy", "host_copy"), (JobRecorder, "record", "record"))
     try:
+        for owner, attr, label in patched:
+            timer.patch(owner, attr, label)
         t0 = time.perf_counter()
         for _ in range(frames):
             pool.step()

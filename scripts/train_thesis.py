@@ -20,7 +20,7 @@ on the same machine resumes generation and training instead of starting over):
 
 What comes back in --out: metrics.json (per split under "splits"), summary.txt, per split the plots
 (``*_<split>.png``, if matplotlib is there; otherwise draw them on the CPU machine with
-``--plots-from``), fit_model_<split>.tar (template/, fit/, split.json, both training logs, the
+``--plots-from``, into DIR/<split>/), fit_model_<split>.tar (template/, fit/, split.json, both training logs, the
 wrinkle model's config without its ~110 MB of weights) and compare_<split>.npz (one held-out
 sequence: simulation, model, LBS and the body, float16, for USD on the CPU machine with
 ``--usd-from``). No usd-core or pyvista is imported here.
@@ -131,7 +131,11 @@ def _train_split(args, data, by: str, work: Path, out: Path, device: str, budget
                               make_split, train_fit, train_wrinkle)
 
     t0 = time.monotonic()
-    split = make_split(data, by, validation_motions=args.validation_motions)
+    motions = {data.sequences[i].motion for i in make_split(data, by).train_sequences}
+    kept = min(args.validation_motions, max(len(motions) - 1, 0))   # a budget-cut store may have few
+    if kept < args.validation_motions:
+        _log(f"split {by}: {len(motions)} training motions, so {kept} kept out for validation")
+    split = make_split(data, by, validation_motions=kept)
     counts = {k: len(v) for k, v in split.test.items()}
     frames = sum(data.sequences[i].num_frames for i in split.train_sequences)
     _log(f"split {by}: train {len(split.train_sequences)} sequences ({frames} frames), validation "
@@ -231,15 +235,17 @@ def plots_from(folder: Path) -> None:
     from simgen.learn.plots import plot_all
 
     metrics = json.loads((folder / "metrics.json").read_text())
-    for by, split_metrics in metrics.get("splits", {}).items():
+    # A folder from before --splits: one split's metrics at the top, fit_model.tar, plots into FOLDER.
+    runs = metrics.get("splits") or {"": metrics}
+    for by, split_metrics in runs.items():
         model_dir = None
-        tar_path = folder / f"fit_model_{by}.tar"
+        tar_path = folder / (f"fit_model_{by}.tar" if by else "fit_model.tar")
         if tar_path.is_file():
             with tarfile.open(tar_path) as tar:
                 tar.extractall(folder / f"unpacked_{by}", filter="data")
             model_dir = folder / f"unpacked_{by}" / "model"
         (folder / by).mkdir(exist_ok=True)
-        for p in plot_all(split_metrics, folder / by, model_dir=model_dir):
+        for p in plot_all(split_metrics, folder / by if by else folder, model_dir=model_dir):
             print(p)
 
 

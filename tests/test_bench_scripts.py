@@ -215,3 +215,39 @@ def test_train_thesis_generates_trains_both_splits_and_evaluates(tmp_path):
     script("--plots-from", str(out))
     script("--usd-from", str(out / "compare_shape.npz"), "--usd", str(tmp_path / "c.usdc"))
     assert (out / "shape" / "training.png").is_file() and (tmp_path / "c.usdc").stat().st_size > 0
+
+
+def test_the_part_timer_puts_back_what_it_patched():
+    """bench_pool_occupancy's timer: own times by call path, and every patched attribute (a class's
+    own, an inherited one, a module's) restored to the very object it was, also after an error."""
+    import importlib.util
+    import types
+
+    import warp as wp
+
+    spec = importlib.util.spec_from_file_location("bench_pool_occupancy", REPO / "scripts" / "bench_pool_occupancy.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+
+    class Base:
+        def inner(self):
+            return 1
+
+    class Outer(Base):
+        def outer(self):
+            return self.inner() + mod.helper()
+
+    mod = types.SimpleNamespace(helper=lambda: 2)
+    own_outer, helper = Outer.__dict__["outer"], mod.helper
+    timer = bench._PartTimer(wp.get_device("cpu"))
+    for owner, attr, label in ((Outer, "outer", "outer"), (Outer, "inner", "inner"), (mod, "helper", "helper")):
+        timer.patch(owner, attr, label)
+    assert Outer().outer() == 3 and set(timer.own) == {"outer", "outer/inner", "outer/helper"}
+    timer.restore()
+    assert Outer.__dict__["outer"] is own_outer and "inner" not in Outer.__dict__ and mod.helper is helper
+    timer.patch(Outer, "outer", "outer")
+    Outer.inner = lambda self: 1 / 0
+    with pytest.raises(ZeroDivisionError):
+        Outer().outer()
+    timer.restore()
+    assert Outer.__dict__["outer"] is own_outer and not timer._stack

@@ -573,6 +573,18 @@ def test_a_retry_joins_its_pool_while_the_waiting_work_outlasts_it(tmp_path, mon
     assert ds.manifest["failed"] == {} and check_dataset(tmp_path / "s").passed
 
 
+def test_the_drain_report_counts_the_jobs_taken_as_the_feed_ran_dry(tmp_path):
+    """Two slots, sequences of 4 cloth-frames: the take that empties the feed gets one job for two
+    free slots, and that fresh job (all 4 frames left) is the work in flight the pool drains."""
+    spec = micro(library=["walk_fast", "jumping_jacks"], batch_size=2)
+    (rep,) = generate_dataset(spec, out=str(tmp_path / "s"))
+    assert rep.written == 4 and spec.protocol_frames() + spec.max_frames - 1 == 4
+    (task,) = rep.tasks
+    assert task["slots"] == 2 and task["ready"] <= task["dry"] <= task["end"]
+    drain = {k: v for k, v in task["drain"].items() if k != "frame_s"}
+    assert drain == {"jobs": 1, "frames_left_max": 4, "frames_left_sum": 4, "queued_frames": 0}
+
+
 class _TwoWorkers:
     """An executor with two workers that runs its pool tasks in this process, the oldest first when
     the driver asks for the next to end, and logs each start (with its jobs) and end; with

@@ -168,6 +168,8 @@ def test_patience_stops_a_run_whose_validation_error_stays(data, tmp_path):
     assert (r.stopped, r.epochs, r.best_epoch) == ("converged", 3, 1)
     with pytest.raises(InputError, match="patience needs a split with validation motions"):
         train_wrinkle(data, tmp_path / "b", make_split(data, "motion"), config=cfg)
+    with pytest.raises(InputError, match="patience needs validations"):
+        train_wrinkle(data, tmp_path / "c", split, config=WrinkleConfig(**{**cfg.__dict__, "val_every": 0}))
 
 
 def test_the_saved_wrinkle_model_is_the_best_validations(data, tmp_path):
@@ -185,6 +187,28 @@ def test_the_saved_wrinkle_model_is_the_best_validations(data, tmp_path):
     batch = stack_sequences(data, split.validation, feature_mode=cfg.feature_mode, target="wrinkle")
     assert _wrinkle_val_error(gru, batch) == pytest.approx(logged[r.best_epoch], rel=1e-5)
     assert gru.saved_config["training"]["validation"]["best_epoch"] == r.best_epoch
-    # Resumed with more epochs, the run keeps its best so far.
+    # Resumed with more epochs, the run keeps its best so far: epoch 9 replaces it only if lower.
     more = train_wrinkle(data, tmp_path, split, config=WrinkleConfig(**{**cfg.__dict__, "epochs": 9}))
-    assert more.epochs == 9 and more.val_error_cm <= r.val_error_cm
+    assert more.epochs == 9
+    assert ((more.best_epoch, more.val_error_cm) == (r.best_epoch, r.val_error_cm)
+            or (more.best_epoch == 9 and more.val_error_cm < r.val_error_cm))
+    # Saving the best weights mid-run (a checkpoint every epoch) leaves the training where it was.
+    again = train_wrinkle(data, tmp_path / "every", split, config=cfg, checkpoint_every=0.0)
+    assert _log_rows(tmp_path / "every") == [row[:4] for row in rows]
+    assert (again.best_epoch, again.val_error_cm) == (r.best_epoch, r.val_error_cm)
+
+
+def _log_rows(folder) -> list:
+    """log.csv's rows without the seconds column."""
+    return [line.split(",")[:4] for line in (folder / "wrinkle" / "log.csv").read_text().splitlines()[1:]]
+
+
+def test_the_cli_fills_what_is_not_given_from_the_folders_split(data, tmp_path):
+    from simgen.learn._cli import _split
+    from simgen.learn.train import write_split
+
+    existing = make_split(data, "shape", test_shapes=["b1m1", "b1p1"], validation_motions=1)
+    write_split(existing, tmp_path)
+    assert _split(data, tmp_path, "shape", None) == existing
+    more = _split(data, tmp_path, None, None, 2)
+    assert (more.by, more.test_shapes) == ("shape", ["b1m1", "b1p1"]) and len(more.validation) > len(existing.validation)

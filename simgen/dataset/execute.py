@@ -486,7 +486,8 @@ def run_pool_task(task: BatchTask, *, progress=None, on_outcome=None, deadline: 
     later attempts' frames and their share of the wall; clock: time.time() at start, fed (the
     first jobs taken from the feed), ready (pool built), dry (a freed slot first found no job left)
     and end; drain (once dry): the jobs then running, the most and the sum of their pool frames
-    left, the pool frames of the jobs queued in the pool (retries), and its recent frame time [s]. A store write failure stops the
+    left, the pool frames of the jobs still queued in the pool (those no slot could take), and its
+    recent frame time [s]. A store write failure stops the
     task: ``error`` is one sentence (the store stays consistent; what was committed is kept).
     """
     from simgen.sim import SimulationJob, SimulationPool
@@ -539,6 +540,7 @@ def run_pool_task(task: BatchTask, *, progress=None, on_outcome=None, deadline: 
                 retries.submit(job)
             if source.dry and "dry" not in clock:
                 clock["dry"] = time.time()   # the pool drains from here, with this work in flight:
+                pool.fill()                  # (the jobs just taken start now, as the next step would)
                 left = [n for _, n in pool.frames_left()]
                 report["drain"] = {"jobs": len(left), "frames_left_max": max(left, default=0),
                                    "frames_left_sum": sum(left), "queued_frames": pool.queued_frames,

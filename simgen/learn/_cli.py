@@ -39,7 +39,14 @@ def _split(data, out: Path, split: str | None, test_shapes: str | None, validati
         if missing:
             raise InputError(f"{out} was trained on sequence {missing[0]!r}, which dataset {data.source} lacks")
         return existing
-    return make_split(data, split or "motion", test_shapes=shapes, validation_motions=validation_motions)
+    by = split or (existing.by if existing is not None else "motion")
+    validation = validation_motions
+    if existing is not None:   # what is not given comes from the folder's split
+        if shapes is None and by == existing.by == "shape":
+            shapes = existing.test_shapes
+        if validation is None:
+            validation = sorted({data.sequences[i].motion for i in existing.validation if i in data.sequences})
+    return make_split(data, by, test_shapes=shapes, validation_motions=validation)
 
 
 def run_train(kind: str, *, dataset: str, out: Path, device: str, epochs: int | None, batch_size: int | None,
@@ -93,7 +100,8 @@ def run_train(kind: str, *, dataset: str, out: Path, device: str, epochs: int | 
     if result.val_error_cm is None:
         val = ""
     elif the_split.validation:
-        val = f", validation {result.val_error_cm:.3f} cm (unposed; the saved weights, epoch {result.best_epoch})"
+        at = "" if result.best_epoch is None else f", epoch {result.best_epoch}"
+        val = f", validation {result.val_error_cm:.3f} cm (unposed; the saved weights{at})"
     else:
         val = f", held-out motions {result.val_error_cm:.3f} cm (unposed)"
     echo(f"wrinkle: {result.epochs} epochs ({result.stopped}), {result.steps} steps, {result.seconds:.1f} s; train "

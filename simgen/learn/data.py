@@ -323,7 +323,8 @@ def make_split(data: GarmentData, by: str = "motion", *, test_shapes=None, valid
         else:
             train.append(sid)
     validation = _validation(data, train, validation_motions)
-    train = [sid for sid in train if sid not in set(validation)]
+    kept_out = set(validation)
+    train = [sid for sid in train if sid not in kept_out]
     if not train and require_train:
         raise InputError("the split leaves no training sequence (need sequences of 'train' motions with a "
                          "training shape)")
@@ -344,7 +345,7 @@ def _validation(data: GarmentData, train: list[str], motions) -> list[str]:
                              f"motions and needs at least one left to train on")
         chosen = set(sorted(available, key=lambda m: zlib.crc32(m.encode()))[:count])
     else:
-        chosen = set(motions)
+        chosen = {motions} if isinstance(motions, str) else set(motions)
         unknown = sorted(chosen - set(available))
         if unknown:
             raise InputError(f"validation motion {unknown[0]!r} is not a training motion of the dataset (training "

@@ -401,6 +401,9 @@ def train_wrinkle(data: GarmentData, out: str | Path, split: Split, *, config: W
                if data.sequences[i].wrinkle is not None]
     val = stack_sequences(data, val_ids, feature_mode=config.feature_mode, target="wrinkle",
                           device=dev) if val_ids else None
+    if config.patience and (val is None or config.val_every <= 0):
+        raise InputError("a wrinkle GRU patience needs validations: val_every of at least 1 and validation "
+                         "sequences with wrinkle ground truth")
     settings = {"config": asdict(config), "split": split.to_dict(), "identity": _identity(data)}
     torch.manual_seed(config.seed)
     model = WrinkleGRU(data.num_betas, feature_size(config.feature_mode), data.num_vertices, hidden=config.hidden,
@@ -432,14 +435,16 @@ def train_wrinkle(data: GarmentData, out: str | Path, split: Split, *, config: W
                     "train_loss": loss_value, "val_error_cm": val_cm,
                     "validation": ({"motions": sorted({data.sequences[i].motion for i in split.validation}),
                                     "sequences": len(split.validation), "best_epoch": selection.best_epoch}
-                                   if selecting else "held-out motions, logged only")}
+                                   if selecting else None)}   # None: val_error_cm is the held-out motions'
         if selection.weights is None:
             save_model(model, folder, identity=_identity(data), training=training)
             return
         current = {k: v.detach().clone() for k, v in model.state_dict().items()}
         model.load_state_dict(selection.weights)      # the saved model is the best validation's
-        save_model(model, folder, identity=_identity(data), training={**training, "val_error_cm": selection.best})
-        model.load_state_dict(current)
+        try:
+            save_model(model, folder, identity=_identity(data), training={**training, "val_error_cm": selection.best})
+        finally:
+            model.load_state_dict(current)            # training goes on from where it is
 
     out_of_time, last_save = False, t0
     try:
