@@ -11,7 +11,7 @@ on the same machine resumes generation and training instead of starting over):
    still leaves held-out motions; stops starting jobs after --gen-budget seconds;
 2. per split of --splits (motion: the thesis's held-out motions; shape: the extreme shapes held out
    as well), in WORK/model_<split>: the fit MLP (2000 epochs, thesis), then the wrinkle GRU with
-   --validation-motions training motions kept out of training: every --val-every epochs their
+   --val-motions training motions kept out of training: every --val-every epochs their
    error picks the saved weights, and --patience validations in a row without a 1% gain stop it
    (else --epochs or the split's share of the time left; checkpointed every minute), then the
    linear baselines;
@@ -132,8 +132,8 @@ def _train_split(args, data, by: str, work: Path, out: Path, device: str, budget
 
     t0 = time.monotonic()
     motions = {data.sequences[i].motion for i in make_split(data, by).train_sequences}
-    kept = min(args.validation_motions, max(len(motions) - 1, 0))   # a budget-cut store may have few
-    if kept < args.validation_motions:
+    kept = min(args.val_motions, max(len(motions) - 1, 0))   # a budget-cut store may have few
+    if kept < args.val_motions:
         _log(f"split {by}: {len(motions)} training motions, so {kept} kept out for validation")
     split = make_split(data, by, validation_motions=kept)
     counts = {k: len(v) for k, v in split.test.items()}
@@ -285,7 +285,7 @@ def main() -> int:
     ap.add_argument("--full", action="store_true", help="the preset's whole store (every motion, shape and frame)")
     ap.add_argument("--splits", nargs="+", default=["shape"], choices=["motion", "shape"],
                     help="trained and evaluated one after the other, each in WORK/model_<split>")
-    ap.add_argument("--validation-motions", type=int, default=2,
+    ap.add_argument("--val-motions", type=int, default=2,
                     help="training motions kept out to pick the GRU's weights and stop it (0: none)")
     ap.add_argument("--patience", type=int, default=8, help="validations without a 1%% gain before the GRU stops")
     ap.add_argument("--total-budget", type=float, default=560.0, help="seconds for everything")

@@ -1030,7 +1030,7 @@ _T_SPLIT = typer.Option(None, "--split", help="motion (thesis: held-out motions)
                         "default: the folder's split, else motion.")
 _T_TEST_SHAPES = typer.Option(None, "--test-shapes", help="With --split shape: shape ids to hold out, 'a,b' or "
                               "'a b' (default: the most extreme).")
-_T_VALID = typer.Option(None, "--validation-motions", help="Keep this many training motions out of training to "
+_T_VALID = typer.Option(None, "--val-motions", help="Keep this many training motions out of training to "
                         "pick the wrinkle GRU's weights and stop it (--patience); default: the folder's, else none.")
 _T_BUDGET = typer.Option(None, "--time-budget", help="Seconds: stop cleanly (everything saved) after this long.")
 _T_RESTART = typer.Option(False, "--restart", help="Discard a saved run in the folder instead of resuming it.")

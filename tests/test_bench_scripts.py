@@ -187,7 +187,7 @@ def test_train_thesis_generates_trains_both_splits_and_evaluates(tmp_path):
     GRU stopped by its validation motions; then the CPU-side plots and USD from what it returned."""
     out, work = tmp_path / "out", tmp_path / "work"
     args = ["--spec", "tiny", "--motions", "jumping_jacks", "walk", "squat", "walk_fast", "--shapes", "zero", "b1p2",
-            "--max-frames", "5", "--splits", "motion", "shape", "--validation-motions", "1", "--patience", "2",
+            "--max-frames", "5", "--splits", "motion", "shape", "--val-motions", "1", "--patience", "2",
             "--val-every", "1", "--epochs", "6", "--fit-epochs", "50", "--hidden", "16", "--window", "4",
             "--batch-size", "4", "--timing-frames", "3", "--inside-stride", "2", "--eval-sequences", "2",
             "--compare-frames", "4", "--total-budget", "600", "--gen-budget", "300", "--min-train", "10",

@@ -148,7 +148,7 @@ def test_a_snug_model_plays_beside_the_simulation(store, tmp_path, capsys):
 def test_train_cli_validation_options_reach_the_split_and_the_run(store, tmp_path, capsys):
     # The store has one training motion: none can be kept for validation, and patience needs one.
     code, _, err = run(["train", "wrinkle", "--dataset", str(store), "--out", str(tmp_path / "a"),
-                        "--validation-motions", "1"], capsys)
+                        "--val-motions", "1"], capsys)
     assert code != 0 and "1 validation motions asked for, but the split has 1 training motions" in err
     code, _, err = run(["train", "wrinkle", "--dataset", str(store), "--out", str(tmp_path / "b"), "--epochs", "2",
                         "--hidden", "8", "--patience", "3"], capsys)

@@ -63,7 +63,7 @@ def run_train(kind: str, *, dataset: str, out: Path, device: str, epochs: int | 
 
     for name, value, low in (("--epochs", epochs, 1), ("--batch-size", batch_size, 1), ("--hidden", hidden, 1),
                              ("--window", window, 1), ("--max-frames", max_frames, 1),
-                             ("--validation-motions", validation_motions, 0), ("--patience", patience, 0)):
+                             ("--val-motions", validation_motions, 0), ("--patience", patience, 0)):
         if value is not None and value < low:
             raise InputError(f"{name} must be at least {low}, got {value}")
     if dropout is not None and not 0.0 <= dropout < 1.0:

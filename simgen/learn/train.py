@@ -395,7 +395,7 @@ def train_wrinkle(data: GarmentData, out: str | Path, split: Split, *, config: W
                             device=dev)
     if config.patience and not split.validation:
         raise InputError("a wrinkle GRU patience needs a split with validation motions (make_split's "
-                         "validation_motions, --validation-motions)")
+                         "validation_motions, --val-motions)")
     selecting = bool(split.validation)
     val_ids = [i for i in (split.validation if selecting else split.test.get("held_out_motion", []))
                if data.sequences[i].wrinkle is not None]
