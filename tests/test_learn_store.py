@@ -86,6 +86,16 @@ def test_train_eval_compare_through_the_cli(store, tmp_path, capsys):
     assert set(group["error_cm"]) >= {"model", "model_raw", "lbs", "lr_pose", "lr_shape_pose"}
     assert all(0 < v < 50 for v in group["error_cm"].values())
     assert group["inside_percent"]["model"] <= group["inside_percent"]["model_raw"]
+    # Strain and the per-clip rows: every method and the simulation; the clips' frame-weighted
+    # errors average back to the group's.
+    assert set(group["triangle_strain"]) == {"ground_truth", *group["error_cm"]}
+    assert all(v >= 0 for v in group["triangle_strain"].values())
+    clips = group["per_clip"]
+    assert sum(c["sequences"] for c in clips.values()) == group["sequences"]
+    frames = sum(c["frames"] for c in clips.values())
+    assert sum(c["frames"] * c["mean_error_cm"]["model"] for c in clips.values()) / frames == pytest.approx(
+        group["error_cm"]["model"], rel=1e-6)
+    assert "mean triangle strain" in out and "held-out clips" in out
     # On the (tiny) training set the model fits the simulations far better than LBS of the template.
     train = metrics["groups"]["train"]["error_cm"]
     assert train["model_raw"] < 0.5 * train["lbs"]

@@ -14,6 +14,9 @@
   with and without the post-process, and of the simulation itself for reference;
 - the energies of the predictions from ``simgen.physics`` (membrane, bending, gravity, contact)
   beside those of the simulation;
+- the mean triangle strain of every sequence (:func:`triangle_strain`, thesis Table 6.2's
+  "strain"), of the simulation and of each prediction, and the errors and strain per held-out
+  clip, so that a clip with bad ground truth does not hide in a group's mean;
 - inference time per frame (frame by frame, one garment, as the thesis's runtime loop) on the CPU
   and, when available, the GPU, with and without the post-process, and the model sizes, beside
   Table 4.1.
@@ -40,7 +43,7 @@ from simgen.learn.garment_model import (FIT_DIR, WRINKLE_DIR, GarmentModel, Stre
                                         load_split)
 
 __all__ = ["THESIS", "METHODS", "METHOD_LABELS", "evaluate_garment", "time_inference", "format_summary",
-           "METRICS_FILE"]
+           "triangle_strain", "METRICS_FILE"]
 
 METRICS_FILE = "metrics.json"
 
@@ -124,15 +127,14 @@ def _physics_terms(data: GarmentData, runs: list[dict], body, device) -> dict:
     is the garment template the solver used, the contact term the solver's own parameters.
     Returns {name: {term: mean}} plus "terms_info".
     """
-    from simgen.physics import BodySurface, ClothRest, evaluate_sequence
+    from simgen.physics import BodySurface, evaluate_sequence
     from simgen.physics.sources import contact_params_from
 
     if data.material is None:
         return {"skipped": "the data carries no material (not read from a dataset store)"}
     solver = data.attrs.get("solver", {})
     params = contact_params_from(solver.get("config", solver))
-    rest_shape = data.rest_template if data.rest_template is not None else data.template
-    rest = ClothRest.from_mesh(rest_shape, data.faces, data.material, dtype=torch.float64)
+    rest = _cloth_rest(data)
     surface = BodySurface(body.faces, body.v_template)
     sums: dict[str, dict[str, list]] = {}
     for run in runs:
@@ -145,6 +147,43 @@ def _physics_terms(data: GarmentData, runs: list[dict], body, device) -> dict:
     out["terms_info"] = {"unit": "J per frame (mean over frames and sequences)", "sequences": len(runs),
                          "material": getattr(data.material, "name", str(data.material)),
                          "contact": {"margin": params.margin, "stiffness": params.stiffness, "power": params.power}}
+    return out
+
+
+def _cloth_rest(data: GarmentData):
+    """The garment's rest geometry as the solver had it (its rest template, else the template),
+    float64; the material only sets the energies' stiffness (cotton when the data has none)."""
+    from simgen.physics import ClothRest
+
+    rest_shape = data.rest_template if data.rest_template is not None else data.template
+    return ClothRest.from_mesh(rest_shape, data.faces, data.material or "cotton", dtype=torch.float64)
+
+
+@torch.no_grad()
+def triangle_strain(positions, rest) -> np.ndarray:
+    """Mean triangle strain per frame, (T,), of positions [m] (T, V, 3): the mean over triangles of
+    ||G||_F^2, G = (F^T F - I) / 2 the Green strain against ``rest`` (a ClothRest), the per-triangle
+    term of thesis eq. 6.11, averaged as Table 6.2 reports "strain" (its definition is not stated
+    there; this is ours). Dimensionless: a uniform stretch by s gives (s^2 - 1)^2 / 2."""
+    from simgen.physics.membrane import green_strain
+
+    g = green_strain(torch.as_tensor(positions).double(), rest)     # (T, F, 2, 2)
+    return (g * g).sum(dim=(-1, -2)).mean(dim=-1).cpu().numpy()
+
+
+def _per_clip(per_seq: dict, group: str) -> dict:
+    """{motion: {sequences, frames, error_cm, triangle_strain}} of one group's sequences, each a
+    frame-weighted mean over the motion's sequences (one per shape)."""
+    clips: dict[str, list] = {}
+    for row in per_seq.values():
+        if row["group"] == group:
+            clips.setdefault(row["motion"], []).append(row)
+    out = {}
+    for motion, rows in sorted(clips.items()):
+        w = np.array([r["frames"] for r in rows], dtype=float)
+        out[motion] = {"sequences": len(rows), "frames": int(w.sum()), **{
+            key: {m: float(np.dot(w, [r[key][m] for r in rows]) / w.sum()) for m in rows[0][key]}
+            for key in ("mean_error_cm", "triangle_strain")}}
     return out
 
 
@@ -255,6 +294,8 @@ def evaluate_garment(model_dir: str | Path, data: GarmentData, out_dir: str | Pa
     group_frames: dict[str, dict[str, list]] = {}
     inside: dict[str, dict[str, list]] = {}
     physics_runs: list[dict] = []
+    strain: dict[str, dict[str, list]] = {}
+    rest = _cloth_rest(data)
     done = 0
     for group, ids in groups.items():
         for sid in ids:
@@ -270,6 +311,11 @@ def evaluate_garment(model_dir: str | Path, data: GarmentData, out_dir: str | Pa
                             "moved_by_postprocess": moved}
             for m, e in errs.items():
                 group_frames.setdefault(group, {}).setdefault(m, []).extend(e.tolist())
+            per_seq[sid]["triangle_strain"] = {}
+            for m, x in (("ground_truth", gt), *((m, preds[m]) for m in methods)):
+                frames_strain = triangle_strain(x, rest)
+                per_seq[sid]["triangle_strain"][m] = float(frames_strain.mean())
+                strain.setdefault(group, {}).setdefault(m, []).extend(frames_strain.tolist())
             # Vertices inside the body, every inside_stride-th frame.
             frames = list(range(0, s.num_frames, max(1, inside_stride)))
             bv = body_model(torch.as_tensor(s.betas[frames], device=dev), torch.as_tensor(s.poses[frames], device=dev),
@@ -292,7 +338,9 @@ def evaluate_garment(model_dir: str | Path, data: GarmentData, out_dir: str | Pa
     for group, by_method in group_frames.items():
         summary[group] = {"sequences": len(groups[group]), "frames": len(next(iter(by_method.values()))),
                           "error_cm": {m: float(np.mean(v)) for m, v in by_method.items()},
-                          "inside_percent": {m: 100.0 * float(np.mean(v)) for m, v in inside.get(group, {}).items()}}
+                          "inside_percent": {m: 100.0 * float(np.mean(v)) for m, v in inside.get(group, {}).items()},
+                          "triangle_strain": {m: float(np.mean(v)) for m, v in strain[group].items()},
+                          "per_clip": _per_clip(per_seq, group)}
 
     metrics = {
         "model_dir": str(model_dir), "dataset": data.source, "garment": data.identity.get("garment"),
@@ -434,6 +482,22 @@ def format_summary(metrics: dict) -> str:
                  "model": "ours, post-processed", "lbs": "LBS"}[m]
         lines.append(f"{label:40s}" + "".join(
             f"{groups[g].get('inside_percent', {}).get(m, float('nan')):18.3f}" for g in names))
+    if all("triangle_strain" in groups[g] for g in names):
+        lines.append("")
+        lines.append(f"{'mean triangle strain ||G||_F^2':40s}" + "".join(f"{g:>18s}" for g in names))
+        for m in ("ground_truth", *methods):
+            label = "simulation (ground truth)" if m == "ground_truth" else METHOD_LABELS[m]
+            lines.append(f"{label:40s}" + "".join(
+                f"{groups[g]['triangle_strain'].get(m, float('nan')):18.5f}" for g in names))
+    clips = (groups.get("held_out_motion") or {}).get("per_clip") or {}
+    if clips:
+        lines.append("")
+        lines.append(f"{'held-out clips (training shapes)':40s}{'ours [cm]':>14s}{'LBS [cm]':>14s}"
+                     f"{'strain sim.':>14s}{'strain ours':>14s}")
+        for motion, row in clips.items():
+            err, st = row["mean_error_cm"], row["triangle_strain"]
+            lines.append(f"{motion:40s}{err['model']:14.3f}{err['lbs']:14.3f}{st['ground_truth']:14.5f}"
+                         f"{st['model']:14.5f}")
     phys = metrics.get("physics") or {}
     rows = [m for m in ("ground_truth", "model", "model_raw", "lbs") if isinstance(phys.get(m), dict)]
     if rows:
