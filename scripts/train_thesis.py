@@ -27,7 +27,7 @@ sequence: simulation, model, LBS and the body, float16, for USD on the CPU machi
 
     # on the GPU machine (after the warp install recipe of ../shared/gpu/README.md):
     python scripts/train_thesis.py --full --splits motion shape --total-budget 1800 --gen-budget 600 \\
-        --out results --work /root/thesis --device cuda
+        --out results --work thesis-run --device cuda
     # back on the CPU machine:
     python scripts/train_thesis.py --plots-from OUTDIR            # plots from metrics.json + logs
     python scripts/train_thesis.py --usd-from OUTDIR/compare_motion.npz --usd compare.usdc
@@ -274,7 +274,7 @@ def usd_from(npz_path: Path, usd_path: Path) -> None:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--out", type=Path, help="folder whose files come back (small)")
-    ap.add_argument("--work", type=Path, default=Path("/root/simgen-thesis"), help="store, models, state (stays)")
+    ap.add_argument("--work", type=Path, default=Path("simgen-thesis"), help="store, models, state (stays)")
     ap.add_argument("--device", default="cuda")
     ap.add_argument("--spec", default="thesis-tshirt")
     ap.add_argument("--motions", nargs="+", default=DEFAULT_MOTIONS)
