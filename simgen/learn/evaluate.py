@@ -172,7 +172,7 @@ def triangle_strain(positions, rest) -> np.ndarray:
 
 
 def _per_clip(per_seq: dict, group: str) -> dict:
-    """{motion: {sequences, frames, error_cm, triangle_strain}} of one group's sequences, each a
+    """{motion: {sequences, frames, mean_error_cm, triangle_strain}} of one group's sequences, each a
     frame-weighted mean over the motion's sequences (one per shape)."""
     clips: dict[str, list] = {}
     for row in per_seq.values():
