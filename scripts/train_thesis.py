@@ -21,16 +21,16 @@ on the same machine resumes generation and training instead of starting over):
 What comes back in --out: metrics.json (per split under "splits"), summary.txt, per split the plots
 (``*_<split>.png``, if matplotlib is there; otherwise draw them on the CPU machine with
 ``--plots-from``, into DIR/<split>/), fit_model_<split>.tar (template/, fit/, split.json, both training logs, the
-wrinkle model's config without its ~110 MB of weights) and compare_<split>.npz (one held-out
-sequence: simulation, model, LBS and the body, float16, for USD on the CPU machine with
-``--usd-from``). No usd-core or pyvista is imported here.
+wrinkle model's config without its ~110 MB of weights) and compare_<split>.npz (--compare-sequences
+held-out sequences of different motions: simulation, model, LBS and the body, float16, for USD,
+MP4 and stills on the CPU machine with ``--usd-from``). No usd-core or pyvista is imported here.
 
     # on the GPU machine (after the warp install recipe of ../shared/gpu/README.md):
     python scripts/train_thesis.py --full --splits motion shape --total-budget 1800 --gen-budget 600 \\
         --out results --work thesis-run --device cuda
     # back on the CPU machine:
     python scripts/train_thesis.py --plots-from OUTDIR            # plots from metrics.json + logs
-    python scripts/train_thesis.py --usd-from OUTDIR/compare_motion.npz --usd compare.usdc
+    python scripts/train_thesis.py --usd-from OUTDIR/compare_motion.npz --usd-out compare --video
 """
 
 from __future__ import annotations
@@ -75,31 +75,42 @@ def _tar_fit_model(model_dir: Path, path: Path) -> None:
                 tar.add(p, arcname=f"model/{rel}")
 
 
-def _compare_npz(model, data, split, path: Path, frames: int) -> dict:
-    """One held-out sequence (zero shape if there is one): simulation, model, LBS, body (float16)."""
+def _compare_ids(data, split, count: int) -> list[str]:
+    """Up to ``count`` held-out sequences of different motions, at the zero shape where there is one."""
+    ids = split.test.get("held_out_motion") or split.test.get("held_out_both") or []
+    by_motion: dict = {}
+    for sid in sorted(ids, key=lambda i: (data.sequences[i].shape_id != "zero", i)):
+        by_motion.setdefault(data.sequences[sid].motion, sid)
+    return sorted(by_motion.values())[:count]
+
+
+def _compare_npz(model, data, split, path: Path, frames: int, count: int) -> dict:
+    """Held-out sequences (:func:`_compare_ids`), their first ``frames`` frames: simulation, model
+    (post-processed), LBS and the posed body [m], float16, (S, T, V, 3) each."""
     import torch
 
     from simgen.learn.garment_model import lbs_baseline
 
-    ids = split.test.get("held_out_motion") or split.test.get("held_out_both") or []
+    ids = _compare_ids(data, split, count)
     if not ids:
         return {}
-    zero = [i for i in ids if data.sequences[i].shape_id == "zero"]
-    sid = sorted(zero or ids)[0]
-    s = data.sequences[sid]
-    n = min(frames, s.num_frames)
+    n = min([frames] + [data.sequences[i].num_frames for i in ids])
     dev = model.device
-    b, p, t = (torch.as_tensor(x[:n], device=dev) for x in (s.betas, s.poses, s.trans))
-    with torch.no_grad():
-        pred = model.predict(b, p, t, s.fps)
-        lbs = lbs_baseline(model.template, b, pred.transforms)
-        body_v = model.body(b, p, t)[0]
-    arrays = {"ground_truth": s.vertices[:n].astype(np.float16), "ours": pred.vertices.cpu().numpy().astype(np.float16),
-              "lbs": lbs.cpu().numpy().astype(np.float16), "body": body_v.cpu().numpy().astype(np.float16),
-              "garment_faces": model.template.faces.cpu().numpy().astype(np.int32),
-              "body_faces": model.body.faces.cpu().numpy().astype(np.int32), "fps": np.float32(s.fps)}
-    np.savez_compressed(path, sequence=np.array(sid), **arrays)
-    return {"sequence": sid, "frames": n, "bytes": path.stat().st_size}
+    arrays: dict = {"ground_truth": [], "ours": [], "lbs": [], "body": []}
+    for sid in ids:
+        s = data.sequences[sid]
+        b, p, t = (torch.as_tensor(x[:n], device=dev) for x in (s.betas, s.poses, s.trans))
+        with torch.no_grad():
+            pred = model.predict(b, p, t, s.fps, postprocess=True)
+            arrays["lbs"].append(lbs_baseline(model.template, b, pred.transforms).cpu().numpy())
+            arrays["body"].append(model.body(b, p, t)[0].cpu().numpy())
+        arrays["ground_truth"].append(s.vertices[:n])
+        arrays["ours"].append(pred.vertices.cpu().numpy())
+    arrays = {k: np.stack(v).astype(np.float16) for k, v in arrays.items()}
+    np.savez_compressed(path, sequence=np.array(ids), garment_faces=model.template.faces.cpu().numpy().astype(np.int32),
+                        body_faces=model.body.faces.cpu().numpy().astype(np.int32),
+                        fps=np.float32(data.sequences[ids[0]].fps), **arrays)
+    return {"sequences": ids, "frames": n, "bytes": path.stat().st_size}
 
 
 def _generate(args, work: Path, left, phase) -> Path:
@@ -166,7 +177,8 @@ def _train_split(args, data, by: str, work: Path, out: Path, device: str, budget
                                inside_stride=args.inside_stride, max_sequences=args.eval_sequences)
     phase(f"evaluate_{by}")
     model = load_garment_model(model_dir, identity=data.identity, device=device)
-    metrics["compare"] = _compare_npz(model, data, split, out / f"compare_{by}.npz", args.compare_frames)
+    metrics["compare"] = _compare_npz(model, data, split, out / f"compare_{by}.npz", args.compare_frames,
+                                      args.compare_sequences)
     _tar_fit_model(model_dir, out / f"fit_model_{by}.tar")
     for name in ("error_per_frame.png", "shape_generalization.png", "training.png"):
         if (ev_dir / name).is_file():
@@ -249,26 +261,42 @@ def plots_from(folder: Path) -> None:
             print(p)
 
 
-def usd_from(npz_path: Path, usd_path: Path) -> None:
-    """USD with simulation, model and LBS side by side, coloured by error, from compare.npz."""
-    from simgen.io.usd import MeshTrack, write_usd
-    from simgen.learn.compare import error_colors
-
+def _compare_sequences(npz_path: Path) -> list[dict]:
+    """The sequences of a compare_<split>.npz as float32 arrays [m]; a file from before several
+    sequences (one sequence, no leading axis) reads as one."""
     z = np.load(npz_path)
-    gt = z["ground_truth"].astype(np.float32)
-    body = z["body"].astype(np.float32)
-    width = float(np.ptp(body.reshape(-1, 3)[:, 0]))
-    spacing = max(1.0, 1.15 * width)
-    tracks = []
-    for k, name in enumerate(("ground_truth", "ours", "lbs")):
-        g = z[name].astype(np.float32)
-        colors = None if name == "ground_truth" else error_colors(np.linalg.norm(g - gt, axis=-1))
-        off = np.array([k * spacing, 0, 0], dtype=np.float32)
-        tracks.append(MeshTrack(name=f"body_{name}", points=body + off, faces=z["body_faces"], role="body"))
-        tracks.append(MeshTrack(name=f"garment_{name}", points=g + off, faces=z["garment_faces"], colors=colors,
-                                role="garment"))
-    print(write_usd(usd_path, tracks, fps=float(z["fps"]), metadata={"sequence": str(z["sequence"]),
-                                                                      "compare_order": ["ground_truth", "ours", "lbs"]}))
+    ids = np.atleast_1d(z["sequence"])
+    names = ("ground_truth", "ours", "lbs", "body")
+    stacked = {k: z[k].astype(np.float32).reshape((len(ids),) + z[k].shape[-3:]) for k in names}
+    return [{"id": str(sid), **{k: stacked[k][i] for k in names}, "garment_faces": z["garment_faces"],
+             "body_faces": z["body_faces"], "fps": float(z["fps"])} for i, sid in enumerate(ids)]
+
+
+def usd_from(npz_path: Path, out: Path, video: bool) -> None:
+    """Per sequence of a compare_<split>.npz: OUT/<stem>_<sequence>.usdc with simulation, model and
+    LBS side by side, coloured by error; with ``video`` also the MP4 and a PNG of its middle frame
+    (1920x720, from the front; needs pyvista and OpenGL)."""
+    from simgen.io.usd import write_usd
+    from simgen.learn.compare import side_by_side_tracks
+
+    out.mkdir(parents=True, exist_ok=True)
+    for c in _compare_sequences(npz_path):
+        tracks, meta = side_by_side_tracks(c["body"], c["body_faces"], c["garment_faces"], c["ground_truth"],
+                                           {"ours": c["ours"], "lbs": c["lbs"]})
+        base = out / f"{npz_path.stem}_{c['id']}"
+        err = meta["mean_error_cm"]
+        print(write_usd(base.with_suffix(".usdc"), tracks, fps=c["fps"], metadata={"sequence": c["id"], **meta}))
+        if video:
+            from simgen.io.render import follow_cameras, render_frame, render_sequence
+
+            size = (1920, 720)
+            cams = follow_cameras(tracks, aspect=size[0] / size[1], fps=c["fps"], azimuth=0.0, elevation=5.0)
+            title = (f"{c['id']}. Left: simulation; middle: ours, post-processed ({err['ours']:.2f} cm); right: LBS "
+                     f"({err['lbs']:.2f} cm). Error: grey 0, orange 2 cm, red 4 cm")
+            print(render_sequence(base.with_suffix(".mp4"), tracks, fps=c["fps"], size=size, camera=cams, title=title))
+            mid = len(cams) // 2
+            print(render_frame(base.with_suffix(".png"), tracks, camera=cams[mid], size=size, title=title, frame=mid,
+                               fps=c["fps"]))
 
 
 def main() -> int:
@@ -304,15 +332,17 @@ def main() -> int:
     ap.add_argument("--inside-stride", type=int, default=5)
     ap.add_argument("--eval-sequences", type=int, default=40, help="at most this many sequences per test group")
     ap.add_argument("--compare-frames", type=int, default=60)
+    ap.add_argument("--compare-sequences", type=int, default=2, help="held-out sequences in compare_<split>.npz")
     ap.add_argument("--plots-from", type=Path, help="CPU machine: draw the plots from a returned folder")
-    ap.add_argument("--usd-from", type=Path, help="CPU machine: compare.npz to turn into USD (with --usd)")
-    ap.add_argument("--usd", type=Path, default=Path("compare.usdc"))
+    ap.add_argument("--usd-from", type=Path, help="CPU machine: a compare_<split>.npz to turn into USD (into --usd-out)")
+    ap.add_argument("--usd-out", type=Path, default=Path("compare"), help="folder of the USD (and MP4, PNG) files")
+    ap.add_argument("--video", action="store_true", help="with --usd-from: also an MP4 and a PNG per sequence")
     args = ap.parse_args()
     if args.plots_from is not None:
         plots_from(args.plots_from)
         return 0
     if args.usd_from is not None:
-        usd_from(args.usd_from, args.usd)
+        usd_from(args.usd_from, args.usd_out, args.video)
         return 0
     if args.out is None:
         ap.error("--out is required")

@@ -213,8 +213,12 @@ def test_train_thesis_generates_trains_both_splits_and_evaluates(tmp_path):
             assert (out / name).is_file(), name
     assert metrics["splits"]["shape"]["test_shapes"] == ["b1p2"]
     script("--plots-from", str(out))
-    script("--usd-from", str(out / "compare_shape.npz"), "--usd", str(tmp_path / "c.usdc"))
-    assert (out / "shape" / "training.png").is_file() and (tmp_path / "c.usdc").stat().st_size > 0
+    script("--usd-from", str(out / "compare_shape.npz"), "--usd-out", str(tmp_path / "usd"))
+    assert (out / "shape" / "training.png").is_file()
+    compared = metrics["splits"]["shape"]["compare"]["sequences"]
+    assert len(compared) == len({s.split("__")[0] for s in compared}) >= 1     # different motions
+    for sid in compared:
+        assert (tmp_path / "usd" / f"compare_shape_{sid}.usdc").stat().st_size > 0
 
 
 def test_the_part_timer_puts_back_what_it_patched():
