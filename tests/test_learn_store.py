@@ -86,6 +86,9 @@ def test_train_eval_compare_through_the_cli(store, tmp_path, capsys):
     assert set(group["error_cm"]) >= {"model", "model_raw", "lbs", "lr_pose", "lr_shape_pose"}
     assert all(0 < v < 50 for v in group["error_cm"].values())
     assert group["inside_percent"]["model"] <= group["inside_percent"]["model_raw"]
+    # The metric post-process: no vertex inside, and the prediction's triangle strain cut.
+    assert group["inside_percent"]["model_relaxed"] <= group["inside_percent"]["model"]
+    assert group["triangle_strain"]["model_relaxed"] < 0.5 * group["triangle_strain"]["model_raw"]
     # Strain and the per-clip rows: every method and the simulation; the clips' frame-weighted
     # errors average back to the group's.
     assert set(group["triangle_strain"]) == {"ground_truth", *group["error_cm"]}
@@ -100,6 +103,7 @@ def test_train_eval_compare_through_the_cli(store, tmp_path, capsys):
     train = metrics["groups"]["train"]["error_cm"]
     assert train["model_raw"] < 0.5 * train["lbs"]
     assert metrics["timing"]["cpu"]["with_postprocess"]["mean_ms"] > 0
+    assert metrics["timing"]["cpu"]["with_metric_postprocess"]["mean_ms"] > 0
     assert metrics["size_mb"]["fit"] == pytest.approx((3 * 521 * 21 + 10 * 20 + 20) * 4 / 1e6)
     assert len(metrics["shape_static"]["shapes"]) == 2 and metrics["shape_motion"]["motion"] == "walk_fast"
     for name in ("error_per_frame.png", "shape_generalization.png", "training.png"):

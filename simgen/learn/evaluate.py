@@ -57,15 +57,19 @@ THESIS = {
     "epochs": 2000,
 }
 
-METHODS = ("model", "model_raw", "fit_only", "lbs", "lr_pose", "lr_shape_pose")
+METHODS = ("model", "model_relaxed", "model_raw", "fit_only", "lbs", "lr_pose", "lr_shape_pose")
 METHOD_LABELS = {
     "model": "ours: fit + wrinkle, post-processed",
+    "model_relaxed": "ours: fit + wrinkle, metric post-process",
     "model_raw": "ours: fit + wrinkle, no post-process",
     "fit_only": "ours: fit only (no wrinkle GRU)",
     "lbs": "LBS of the template",
     "lr_pose": "linear regression from pose (thesis LR)",
     "lr_shape_pose": "linear regression from shape + pose",
 }
+# The garments whose vertices inside the body and physics terms are reported, with their short labels.
+SET_LABELS = {"ground_truth": "simulation (ground truth)", "model_raw": "ours, no post-process",
+              "model": "ours, post-processed", "model_relaxed": "ours, metric post-process", "lbs": "LBS"}
 
 
 def _vertex_error_cm(pred: torch.Tensor, gt: torch.Tensor) -> np.ndarray:
@@ -80,13 +84,15 @@ def _identity(data: GarmentData) -> dict:
 # ------------------------------------------------------------------------------------ predictions
 @torch.no_grad()
 def _predict_all(model: GarmentModel, lrs: dict, betas, poses, trans, fps: float) -> dict[str, torch.Tensor]:
-    """Every method's garment [m] (T, V, 3) for one sequence, plus 'moved' (T, V) of the post-process."""
+    """Every method's garment [m] (T, V, 3) for one sequence, plus 'moved' (T, V) of the post-process
+    (the thesis's; "model_relaxed" is the metric post-process of the same raw prediction)."""
     dev = model.device
     b = torch.as_tensor(betas, dtype=torch.float32, device=dev)
     p = torch.as_tensor(poses, dtype=torch.float32, device=dev)
     t = torch.as_tensor(trans, dtype=torch.float32, device=dev)
     pred = model.predict(b, p, t, fps, postprocess=True)
     out = {"model": pred.vertices, "model_raw": pred.raw, "moved": pred.moved}
+    out["model_relaxed"] = model.push_out_sequence(pred.raw, b, p, t, relax=True)[0]
     a = pred.transforms
     out["fit_only"] = lbs_baseline_fit(model, b, a)
     out["lbs"] = lbs_baseline(model.template, b, a)
@@ -190,11 +196,11 @@ def _per_clip(per_seq: dict, group: str) -> dict:
 # ------------------------------------------------------------------------------------ timing
 @torch.no_grad()
 def time_inference(model: GarmentModel, betas, poses, trans, fps: float, *, device, postprocess: bool,
-                   frames: int = 100, warmup: int = 10, cuda_graph: bool = False) -> dict:
+                   relax: bool = False, frames: int = 100, warmup: int = 10, cuda_graph: bool = False) -> dict:
     """Milliseconds per frame of frame-by-frame inference of one garment (thesis Table 4.1).
 
     Per frame: body joint transforms, R_G, one GRU step, garment skinning; with the post-process
-    also the posed body and the push-out. cuda_graph: replay each frame from a CUDA graph
+    also the posed body and the push-out (with ``relax``: the metric post-process). cuda_graph: replay each frame from a CUDA graph
     (:class:`simgen.learn.streaming.GraphedStream`; CUDA only, without the post-process), the inputs'
     copy into the graph included. Returns {"mean_ms", "std_ms", "median_ms", "frames", "cuda_graph"}.
     """
@@ -214,7 +220,7 @@ def time_inference(model: GarmentModel, betas, poses, trans, fps: float, *, devi
     else:
         state = StreamState()
         frame = lambda i: model.step(state, b[i:i + 1], p[i:i + 1], t[i:i + 1], fps,  # noqa: E731
-                                     postprocess=postprocess)
+                                     postprocess=postprocess, relax=relax)
     times = []
     sync = torch.cuda.synchronize if dev.type == "cuda" else (lambda: None)
     for k in range(warmup + frames):
@@ -321,15 +327,15 @@ def evaluate_garment(model_dir: str | Path, data: GarmentData, out_dir: str | Pa
             bv = body_model(torch.as_tensor(s.betas[frames], device=dev), torch.as_tensor(s.poses[frames], device=dev),
                             torch.as_tensor(s.trans[frames], device=dev))[0].cpu().numpy()
             for k, f in enumerate(frames):
-                sets = {"ground_truth": s.vertices[f], "model": preds["model"][f].cpu().numpy(),
-                        "model_raw": preds["model_raw"][f].cpu().numpy(), "lbs": preds["lbs"][f].cpu().numpy()}
+                sets = {"ground_truth": s.vertices[f], **{m: preds[m][f].cpu().numpy() for m in SET_LABELS
+                                                           if m != "ground_truth"}}
                 for m, frac in _inside_fraction(sets, bv[k], faces, warp_device).items():
                     inside.setdefault(group, {}).setdefault(m, []).append(frac)
             if group == "held_out_motion" and len(physics_runs) < physics_sequences:
                 bv_all = body_model(torch.as_tensor(s.betas, device=dev), torch.as_tensor(s.poses, device=dev),
                                     torch.as_tensor(s.trans, device=dev))[0].cpu().numpy()
                 physics_runs.append({"fps": s.fps, "body_vertices": bv_all, "sets": {
-                    "ground_truth": s.vertices, **{m: preds[m].cpu().numpy() for m in ("model", "model_raw", "lbs")}}})
+                    "ground_truth": s.vertices, **{m: preds[m].cpu().numpy() for m in SET_LABELS if m in preds}}})
             done += 1
             if progress is not None:
                 progress(done, total)
@@ -376,6 +382,8 @@ def evaluate_garment(model_dir: str | Path, data: GarmentData, out_dir: str | Pa
                                                       postprocess=False, frames=timing_frames),
                 "with_postprocess": time_inference(model, s.betas, s.poses, s.trans, s.fps, device=d,
                                                    postprocess=True, frames=timing_frames),
+                "with_metric_postprocess": time_inference(model, s.betas, s.poses, s.trans, s.fps, device=d,
+                                                          postprocess=True, relax=True, frames=timing_frames),
                 **({"without_postprocess_cuda_graph": time_inference(
                     model, s.betas, s.poses, s.trans, s.fps, device=d, postprocess=False, frames=timing_frames,
                     cuda_graph=True)} if d == "cuda" else {}),
@@ -477,10 +485,8 @@ def format_summary(metrics: dict) -> str:
             f"{groups[g]['error_cm'].get(m, float('nan')):18.3f}" for g in names))
     lines.append("")
     lines.append(f"{'vertices inside the body [%]':40s}" + "".join(f"{g:>18s}" for g in names))
-    for m in ("ground_truth", "model_raw", "model", "lbs"):
-        label = {"ground_truth": "simulation (ground truth)", "model_raw": "ours, no post-process",
-                 "model": "ours, post-processed", "lbs": "LBS"}[m]
-        lines.append(f"{label:40s}" + "".join(
+    for m in SET_LABELS:
+        lines.append(f"{SET_LABELS[m]:40s}" + "".join(
             f"{groups[g].get('inside_percent', {}).get(m, float('nan')):18.3f}" for g in names))
     if all("triangle_strain" in groups[g] for g in names):
         lines.append("")
@@ -493,31 +499,32 @@ def format_summary(metrics: dict) -> str:
     if clips:
         lines.append("")
         lines.append(f"{'held-out clips (training shapes)':40s}{'ours [cm]':>14s}{'LBS [cm]':>14s}"
-                     f"{'strain sim.':>14s}{'strain ours':>14s}")
+                     f"{'strain sim.':>14s}{'strain ours':>14s}{'ours, metric':>14s}")
         for motion, row in clips.items():
             err, st = row["mean_error_cm"], row["triangle_strain"]
             lines.append(f"{motion:40s}{err['model']:14.3f}{err['lbs']:14.3f}{st['ground_truth']:14.5f}"
-                         f"{st['model']:14.5f}")
+                         f"{st['model']:14.5f}{st.get('model_relaxed', float('nan')):14.5f}")
     phys = metrics.get("physics") or {}
-    rows = [m for m in ("ground_truth", "model", "model_raw", "lbs") if isinstance(phys.get(m), dict)]
+    rows = [m for m in SET_LABELS if isinstance(phys.get(m), dict)]
     if rows:
         terms = ("strain", "bending", "collision", "inertia", "potential")
         lines.append("")
         lines.append(f"{'physics terms [J per frame]':40s}" + "".join(f"{t:>14s}" for t in terms))
-        labels = {"ground_truth": "simulation (ground truth)", "model": "ours, post-processed",
-                  "model_raw": "ours, no post-process", "lbs": "LBS"}
         for m in rows:
-            lines.append(f"{labels[m]:40s}" + "".join(f"{phys[m].get(t, float('nan')):14.4g}" for t in terms))
+            lines.append(f"{SET_LABELS[m]:40s}" + "".join(f"{phys[m].get(t, float('nan')):14.4g}" for t in terms))
     timing = metrics.get("timing") or {}
     if timing:
         lines.append("")
-        lines.append(f"{'inference [ms/frame]':40s}{'w/o post-process':>18s}{'with post-process':>18s}")
+        lines.append(f"{'inference [ms/frame]':40s}{'w/o post-process':>18s}{'with post-process':>18s}"
+                     f"{'metric p.-p.':>18s}")
         th = THESIS["ms_per_frame"]
-        lines.append(f"{'thesis (i7-6700 + Titan X)':40s}{th['without_postprocess']:18.2f}{th['with_postprocess']:18.2f}")
+        lines.append(f"{'thesis (i7-6700 + Titan X)':40s}{th['without_postprocess']:18.2f}{th['with_postprocess']:18.2f}"
+                     f"{'-':>18s}")
         for d, row in timing.items():
             label = f"ours, {d} ({row.get('device_name') or ''})"[:40]
+            metric = row.get("with_metric_postprocess", {}).get("mean_ms", float("nan"))
             lines.append(f"{label:40s}{row['without_postprocess']['mean_ms']:18.2f}"
-                         f"{row['with_postprocess']['mean_ms']:18.2f}")
+                         f"{row['with_postprocess']['mean_ms']:18.2f}{metric:18.2f}")
             if "without_postprocess_cuda_graph" in row:
                 lines.append(f"{'  the same, replayed from a CUDA graph':40s}"
                              f"{row['without_postprocess_cuda_graph']['mean_ms']:18.2f}{'-':>18s}")

@@ -107,20 +107,36 @@ class BodyCollision(nn.Module):
         return out
 
     def push_out_sequence(self, raw: torch.Tensor, betas: torch.Tensor, poses: torch.Tensor, trans: torch.Tensor,
-                          chunk: int = 256):
+                          chunk: int = 256, *, relax: bool = False):
         """The collision post-process over a sequence, ``chunk`` frames at a time, each push spread
         over the cloth around it (:class:`simgen.learn.collision.MeshSpread` of the template's
         faces): raw garment [m] (T, V, 3), betas (T, B), poses (T, 24, 3), trans (T, 3) ->
-        (pushed-out vertices [m] (T, V, 3), moved (T, V) bool: the vertices that collided)."""
-        faces = self.template.faces
-        if getattr(self, "_spread", None) is None or self._spread.rows.device != raw.device:
-            self._spread = MeshSpread(faces.cpu(), self.template.num_vertices).to(raw.device)
+        (pushed-out vertices [m] (T, V, 3), moved (T, V) bool: the vertices that collided). With
+        ``relax``, the metric post-process instead (:meth:`postprocess_frames`)."""
         out, moved = torch.empty_like(raw), torch.empty(raw.shape[:2], dtype=torch.bool, device=raw.device)
         for s in range(0, len(raw), chunk):
             sl = slice(s, s + chunk)
             bv = self.body(betas[sl], poses[sl], trans[sl])[0]
-            out[sl], moved[sl] = push_out(raw[sl], bv, self.surface, clearance=self.clearance, spread=self._spread)
+            out[sl], moved[sl] = self.postprocess_frames(raw[sl], bv, relax=relax)
         return out, moved
+
+    def postprocess_frames(self, posed: torch.Tensor, body_vertices: torch.Tensor, *, relax: bool = False):
+        """The post-process of frames: posed garments [m] (N, V, 3) on posed bodies [m] (N, Vb, 3) ->
+        (garments [m] (N, V, 3), moved (N, V) bool). Without ``relax`` the thesis's: vertices closer
+        than the clearance pushed out, the push spread over the cloth around them; with ``relax``
+        the metric post-process: the triangles brought back to the metric of the relaxed template
+        T_r near the prediction, with the body's contacts, then that push
+        (:class:`simgen.learn.relax.MetricRelax`, built on first use: a (V, V) matrix on the device)."""
+        dev = posed.device
+        if getattr(self, "_spread", None) is None or self._spread.rows.device != dev:
+            self._spread = MeshSpread(self.template.faces.cpu(), self.template.num_vertices).to(dev)
+        if not relax:
+            return push_out(posed, body_vertices, self.surface, clearance=self.clearance, spread=self._spread)
+        if getattr(self, "_relax", None) is None or self._relax.device != dev:
+            from simgen.learn.relax import MetricRelax
+
+            self._relax = MetricRelax(self.template.template, self.template.faces, device=dev)
+        return self._relax(posed, body_vertices, self.surface, clearance=self.clearance, spread=self._spread)
 
 
 class GarmentModel(BodyCollision):
@@ -161,10 +177,12 @@ class GarmentModel(BodyCollision):
         return rest + wrinkle, hidden
 
     @torch.no_grad()
-    def predict(self, betas, poses, trans, fps: float, *, postprocess: bool = True, chunk: int = 256) -> Prediction:
+    def predict(self, betas, poses, trans, fps: float, *, postprocess: bool = True, relax: bool = False,
+                chunk: int = 256) -> Prediction:
         """Garment over a whole sequence, the GRU run from rest.
 
-        betas (T, B); poses axis-angle [rad] (T, 24, 3); trans [m] (T, 3); fps [1/s] of the sequence.
+        betas (T, B); poses axis-angle [rad] (T, 24, 3); trans [m] (T, 3); fps [1/s] of the sequence;
+        postprocess: the collision post-process (relax: the metric one, :meth:`postprocess_frames`).
         """
         betas, poses, trans = self._tensor(betas), self._tensor(poses), self._tensor(trans)
         features = motion_features(poses, trans, fps, self.feature_mode)
@@ -173,15 +191,17 @@ class GarmentModel(BodyCollision):
         raw = lbs_torch(rest[0], self.template.skin_weights, a)
         if not postprocess:
             return Prediction(raw, raw, None, a)
-        out, moved = self.push_out_sequence(raw, betas, poses, trans, chunk)
+        out, moved = self.push_out_sequence(raw, betas, poses, trans, chunk, relax=relax)
         return Prediction(out, raw, moved, a)
 
     @torch.no_grad()
-    def step(self, state: StreamState, betas, pose, trans, fps: float, *, postprocess: bool = True) -> torch.Tensor:
+    def step(self, state: StreamState, betas, pose, trans, fps: float, *, postprocess: bool = True,
+             relax: bool = False) -> torch.Tensor:
         """One frame for N streams (the runtime loop of thesis Table 4.1).
 
         betas (N, B); pose (N, 24, 3); trans (N, 3); state is updated in place. Returns vertices [m]
-        (N, V, 3).
+        (N, V, 3): with ``postprocess`` the thesis's per-vertex push-out, with ``relax`` as well the
+        metric post-process (:meth:`postprocess_frames`).
         """
         features = motion_features(pose[:, None], trans[:, None], fps, self.feature_mode, previous=state.previous)
         rest, state.hidden = self.unposed(betas[:, None], features, state.hidden)
@@ -191,6 +211,8 @@ class GarmentModel(BodyCollision):
             return lbs_torch(rest[:, 0], self.template.skin_weights, a)
         bv, _, a = self.body(betas, pose, trans)
         posed = lbs_torch(rest[:, 0], self.template.skin_weights, a)
+        if relax:
+            return self.postprocess_frames(posed, bv, relax=True)[0]
         return push_out(posed, bv, self.surface, clearance=self.clearance)[0]
 
 
