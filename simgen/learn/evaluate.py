@@ -219,8 +219,9 @@ def time_inference(model: GarmentModel, betas, poses, trans, fps: float, *, devi
         frame = lambda i: stream.step(b[i:i + 1], p[i:i + 1], t[i:i + 1])  # noqa: E731
     else:
         state = StreamState()
+        metric = {"relax": True} if relax else {}    # only GarmentModel.step has the metric post-process
         frame = lambda i: model.step(state, b[i:i + 1], p[i:i + 1], t[i:i + 1], fps,  # noqa: E731
-                                     postprocess=postprocess, relax=relax)
+                                     postprocess=postprocess, **metric)
     times = []
     sync = torch.cuda.synchronize if dev.type == "cuda" else (lambda: None)
     for k in range(warmup + frames):

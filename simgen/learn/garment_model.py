@@ -126,7 +126,9 @@ class BodyCollision(nn.Module):
         than the clearance pushed out, the push spread over the cloth around them; with ``relax``
         the metric post-process: the triangles brought back to the metric of the relaxed template
         T_r near the prediction, with the body's contacts, then that push
-        (:class:`simgen.learn.relax.MetricRelax`, built on first use: a (V, V) matrix on the device)."""
+        (:class:`simgen.learn.relax.MetricRelax`, built on first use: a (V, V) matrix on the device).
+        moved: the vertices that collided (with ``relax``: those within the clearance at the start
+        and those the final push moved, neighbours of colliding vertices included)."""
         dev = posed.device
         if getattr(self, "_spread", None) is None or self._spread.rows.device != dev:
             self._spread = MeshSpread(self.template.faces.cpu(), self.template.num_vertices).to(dev)

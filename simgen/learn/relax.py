@@ -133,6 +133,8 @@ class MetricRelax:
         """Move the stored tensors to ``device`` (in place, floating ones in ``self.dtype``) with the
         global matrix factored for it: a sparse LU on the CPU, the dense inverse on a GPU; returns self."""
         device = torch.device(device)
+        if device.type == "cuda" and device.index is None:     # tensors on "cuda" report their index
+            device = torch.device("cuda", torch.cuda.current_device())
         self.faces = self.faces.to(device)
         for name in ("grad_op", "area", "weighted_grad_t", "tie"):
             setattr(self, name, getattr(self, name).to(device=device, dtype=self.dtype))
@@ -202,14 +204,17 @@ class MetricRelax:
     def _global_step(self, rt: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
         """argmin_x E(x; R) [m] (N, V, 3) for the rotations given as R_t^T (N, F, 2, 3) and p [m] (N, V, 3)."""
         per_corner = self.weighted_grad_t @ rt                 # a_t D_t^T R_t^T (N, F, 3, 3) [m]
-        b = (self.tie[:, None] * p).index_add(1, self.faces.reshape(-1), per_corner.flatten(1, 2))
+        # Solved for x - c, c the prediction's centroid per frame (exact: the membrane rows of A sum to
+        # zero, so A c = fidelity m c), which keeps a float32 solve as precise far from the origin.
+        c = p.mean(dim=1, keepdim=True)
+        b = (self.tie[:, None] * (p - c)).index_add(1, self.faces.reshape(-1), per_corner.flatten(1, 2))
         n, v, _ = b.shape      # all frames' coordinates as the columns of one right-hand side
         rhs = b.permute(1, 0, 2).reshape(v, 3 * n)
         if self._lu is not None:
             x = torch.from_numpy(self._lu.solve(rhs.double().numpy())).to(rhs.dtype)
         else:
             x = self.ainv @ rhs
-        return x.reshape(v, n, 3).permute(1, 0, 2)
+        return c + x.reshape(v, n, 3).permute(1, 0, 2)
 
     # -- inputs ---------------------------------------------------------------------------------
 
@@ -226,9 +231,9 @@ class MetricRelax:
         return (x[None] if single else x).to(self.dtype), single
 
     def _body(self, body_vertices, surface: CollisionSurface, frames: int) -> torch.Tensor:
-        """body_vertices as (N, B, 3) in this relax's dtype."""
+        """body_vertices as (N, B, 3) in this relax's dtype ((B, 3): the same body for all N frames)."""
         b = torch.as_tensor(body_vertices)
-        b = b[None] if b.ndim == 2 else b
+        b = b[None].expand(frames, -1, -1) if b.ndim == 2 else b
         if b.ndim != 3 or b.shape[1:] != (surface.num_vertices, 3) or b.shape[0] != frames:
             raise InputError(f"body_vertices must have shape ({frames}, {surface.num_vertices}, 3) or "
                              f"({surface.num_vertices}, 3) for {frames} frame(s) of points, got {tuple(b.shape)}")
