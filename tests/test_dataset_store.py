@@ -808,9 +808,33 @@ def test_a_retry_joins_its_pool_only_if_the_waiting_work_covers_it():
     for pool_attempt, job_attempt, times in ((1, 1, 2), (2, 2, 2), (1, 2, 4)):
         for slots in (1, 3):
             for waiting, ok in ((cf * times * slots, True), (cf * times * slots - 1, False)):
-                pool = SimpleNamespace(queued_frames=waiting // 2, num_slots=slots)
+                pool = SimpleNamespace(queued_frames=waiting // 2, num_slots=slots, frames_left=lambda: [])
                 retries = _PoolRetries(spec, pool_attempt, pool, None, lambda protocol, w=waiting: w - w // 2)
                 assert retries._ends_in_time(replace(job, attempt=job_attempt)) is ok, (pool_attempt, slots, waiting)
+
+
+def test_a_retry_also_counts_the_work_in_flight_and_the_drain():
+    """The pool's life left (execute.pool_frames_left): with nothing in flight the waiting work per
+    slot; with nothing waiting its longest job; a full pool whose jobs have L..1 frames left and
+    work waiting ends that work per slot plus about L later; a retry joins while its pool frames fit
+    in that life, which the waiting work alone (the old rule) would refuse."""
+    from types import SimpleNamespace
+
+    from simgen.dataset.execute import _PoolRetries, job_cloth_frames, pool_frames_left
+
+    assert pool_frames_left(12, [], 3) == 4 and pool_frames_left(0, [], 3) == 0
+    full = list(range(1, 101))                 # 100 slots, 1..100 frames left: mean 50.5
+    assert pool_frames_left(0, full, 100) == 100
+    assert pool_frames_left(1000, full, 100) == pytest.approx(10 + 50.5 + 50.5)
+    assert pool_frames_left(8, [40, 2], 4) == 40     # never before the longest job in flight ends
+    spec = micro()
+    job = _job("a", 30)
+    need = 2 * job_cloth_frames(spec, [job])         # attempt 2 at twice the pool's substeps
+    # Nothing waiting, one job in flight with k frames left: the pool lives k more frames.
+    for left, ok in (([need, 3], True), ([need - 1, 3], False)):
+        pool = SimpleNamespace(queued_frames=0, num_slots=4, frames_left=lambda left=left: [("j", n) for n in left])
+        retries = _PoolRetries(spec, 1, pool, None, lambda protocol: 0)
+        assert retries._ends_in_time(job) is ok, left
 
 
 def test_job_feed_never_steals_the_template_or_fits():

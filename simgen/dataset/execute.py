@@ -17,8 +17,9 @@ ends to a :class:`NodeWriter` (ground truth, statistics, Zarr,
 commit), in background threads behind the simulation with ``execution.overlap_writes``. A job
 that diverges fails while the others are written, and runs again with the substep halved (attempt
 k runs substeps * 2^(k-1)) until ``execution.max_attempts``: in the same pool (the job's
-``substeps_factor`` there) while the work still waiting for the pool's slots keeps it full for
-longer than the retry takes, and its failed attempt's outcome then says ``retry: "pool"``; else in
+``substeps_factor`` there) while the pool, by the work waiting for its slots and the work in
+flight, will step for longer than the retry takes (:func:`pool_frames_left`), and its failed
+attempt's outcome then says ``retry: "pool"``; else in
 a small pool that the driver starts on the first free worker (a retry left to step on alone in a
 draining pool pays for the idle slots around it: BENCHMARKS.md). A sequence with a
 strain or depth outlier (a triangle or a vertex past the check's limits on some frame) is such a
@@ -478,7 +479,7 @@ def run_pool_task(task: BatchTask, *, progress=None, on_outcome=None, deadline: 
     or dropped come back in ``not_done``, the planned cloth-frames of the dropped ones in
     ``abandoned_cloth_frames``. Jobs whose node is already committed (an earlier attempt of this
     task) are not simulated again; a failed job with attempts left runs again in the same pool
-    while the work waiting there outlasts it (:class:`_PoolRetries`). Returns {outcomes, error,
+    while the pool will step for longer than the retry takes (:class:`_PoolRetries`). Returns {outcomes, error,
     not_done, abandoned_cloth_frames, slots, wall, cloth_frames, step_s, write_s, write_wait,
     retry_cloth_frames, retry_wall, clock}: slots: the pool's; wall [s] the pool's frames
     (simulation, statistics, host copies); step_s [s] the solver's stepping within them; write_s
@@ -622,9 +623,9 @@ class _Source:
 
 
 class _PoolRetries:
-    """Sends a task's failed jobs back into its pool at twice the substeps while the work still
-    waiting for the pool's slots (queued in the pool or left in its feed: module doc) keeps the
-    pool full for longer than the retry takes.
+    """Sends a task's failed jobs back into its pool at twice the substeps while the pool, by the
+    work waiting for its slots (queued in the pool or left in its feed: module doc) and the work in
+    flight, will step for longer than the retry takes (:func:`pool_frames_left`).
 
     spec: the store's spec; attempt: the task's (its pool's substeps); pool: the SimulationPool;
     on_outcome: the caller's, handed every outcome after this has seen it; fed(protocol_frames) ->
@@ -663,14 +664,31 @@ class _PoolRetries:
             self.submit(replace(job, attempt=job.attempt + 1))
 
     def _ends_in_time(self, job: Job) -> bool:
-        """The retry of ``job`` ends before the pool runs out of waiting work: the pool frames it
-        takes (its cloth-frames times its substeps over the pool's) are at most those the full
-        pool needs for the work still waiting. A retry started later would step on alone while the pool drains
-        (an idle slot costs a good part of a busy one: BENCHMARKS.md) and hold its GPU past the
-        other pools; the driver runs it in a small pool on the first free worker instead."""
+        """The retry of ``job`` ends before the pool would: the pool frames it takes (its
+        cloth-frames times its substeps over the pool's) are at most the pool's life left
+        (:func:`pool_frames_left`). A retry that outlasted the pool would step on alone (an idle
+        slot costs a good part of a busy one: BENCHMARKS.md) and hold its GPU past the other pools;
+        the driver runs it in a small pool on the first free worker instead."""
         need = job_cloth_frames(self.spec, [job]) * 2 ** (job.attempt + 1 - self.attempt)
         waiting = self.pool.queued_frames + self.fed(self.spec.protocol_frames())
-        return waiting >= need * self.pool.num_slots
+        return need <= pool_frames_left(waiting, [n for _, n in self.pool.frames_left()], self.pool.num_slots)
+
+
+def pool_frames_left(waiting: float, in_flight: list, slots: int) -> float:
+    """Pool frames a pool of ``slots`` slots will still step, estimated from the cloth-frames waiting
+    for its slots (queued or in its feed) and the pool frames each job in flight has left. With
+    nothing waiting: its longest job in flight. Else the waiting work spread over every slot after
+    the work in flight, then the drain, in which the jobs started last run on for about as long as
+    the jobs in flight have left on average (a full pool's work in flight is left about uniformly
+    between 0 and L: the pool ends about L after its feed runs dry, as it does); never less than
+    the longest job in flight. It overestimates when the jobs started last are shorter than those
+    in flight (the feed hands out the longest first)."""
+    if waiting <= 0:
+        return max(in_flight, default=0)
+    if not in_flight:
+        return waiting / slots
+    drain = sum(in_flight) / len(in_flight)
+    return max(max(in_flight), (waiting + sum(in_flight)) / slots + drain)
 
 
 def _memory_high(device: str) -> int | None:
