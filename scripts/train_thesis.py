@@ -320,7 +320,7 @@ def main() -> int:
     ap.add_argument("--gen-budget", type=float, default=240.0)
     ap.add_argument("--min-train", type=float, default=120.0, help="seconds generation leaves to training at least")
     ap.add_argument("--fit-budget", type=float, default=30.0)
-    ap.add_argument("--eval-reserve", type=float, default=90.0, help="seconds kept for evaluation and packing")
+    ap.add_argument("--eval-reserve", type=float, default=240.0, help="seconds kept for evaluation and packing")
     ap.add_argument("--fit-epochs", type=int, default=2000)
     ap.add_argument("--epochs", type=int, default=2000, help="wrinkle GRU epochs (the budget usually ends it)")
     ap.add_argument("--hidden", type=int, default=1500)
@@ -330,7 +330,8 @@ def main() -> int:
     ap.add_argument("--val-every", type=int, default=25)
     ap.add_argument("--timing-frames", type=int, default=100)
     ap.add_argument("--inside-stride", type=int, default=5)
-    ap.add_argument("--eval-sequences", type=int, default=40, help="at most this many sequences per test group")
+    ap.add_argument("--eval-sequences", type=int, default=68,
+                    help="at most this many sequences per test group (68: the 4 held-out motions at 17 shapes)")
     ap.add_argument("--compare-frames", type=int, default=60)
     ap.add_argument("--compare-sequences", type=int, default=2, help="held-out sequences in compare_<split>.npz")
     ap.add_argument("--plots-from", type=Path, help="CPU machine: draw the plots from a returned folder")
