@@ -335,7 +335,7 @@ def main() -> int:
     ap.add_argument("--compare-frames", type=int, default=60)
     ap.add_argument("--compare-sequences", type=int, default=2, help="held-out sequences in compare_<split>.npz")
     ap.add_argument("--plots-from", type=Path, help="CPU machine: draw the plots from a returned folder")
-    ap.add_argument("--usd-from", type=Path, help="CPU machine: a compare_<split>.npz to turn into USD (into --usd-out)")
+    ap.add_argument("--usd-from", type=Path, help="CPU machine: a compare_<split>.npz to turn into USD")
     ap.add_argument("--usd-out", type=Path, default=Path("compare"), help="folder of the USD (and MP4, PNG) files")
     ap.add_argument("--video", action="store_true", help="with --usd-from: also an MP4 and a PNG per sequence")
     args = ap.parse_args()

@@ -200,9 +200,10 @@ def time_inference(model: GarmentModel, betas, poses, trans, fps: float, *, devi
     """Milliseconds per frame of frame-by-frame inference of one garment (thesis Table 4.1).
 
     Per frame: body joint transforms, R_G, one GRU step, garment skinning; with the post-process
-    also the posed body and the push-out (with ``relax``: the metric post-process). cuda_graph: replay each frame from a CUDA graph
-    (:class:`simgen.learn.streaming.GraphedStream`; CUDA only, without the post-process), the inputs'
-    copy into the graph included. Returns {"mean_ms", "std_ms", "median_ms", "frames", "cuda_graph"}.
+    also the posed body and the push-out (with ``relax``: the metric post-process). cuda_graph:
+    replay each frame from a CUDA graph (:class:`simgen.learn.streaming.GraphedStream`; CUDA only,
+    without the post-process), the inputs' copy into the graph included. Returns {"mean_ms",
+    "std_ms", "median_ms", "frames", "cuda_graph"}.
     """
     dev = torch.device(device)
     if cuda_graph and (dev.type != "cuda" or postprocess):
