@@ -182,6 +182,18 @@ def test_bench_pool_occupancy_times_busy_and_idle_slots_and_the_parts_of_a_frame
         assert sum(parts.values()) == pytest.approx(run["synced_frame_ms"], rel=0.02)
 
 
+def test_bench_postprocess_times_the_three_post_processes(tmp_path):
+    """Each post-process leaves nothing inside; the metric one cuts the noisy input's triangle strain."""
+    result = run_script("bench_postprocess.py", "--device", "cpu", "--frames", "3", "--single-frames", "2",
+                        "--repeats", "1", out=tmp_path / "post.json")
+    rows = result["methods"]
+    assert result["benchmark"] == "postprocess" and result["sizes"]["frames"] == 3
+    assert set(rows) == {"input", "push", "spread_push", "metric"}
+    for name in ("push", "spread_push", "metric"):
+        assert rows[name]["inside_percent"] == 0 and rows[name]["single_ms_per_frame"] > 0
+    assert rows["metric"]["mean_triangle_strain"] < 0.2 * rows["input"]["mean_triangle_strain"]
+
+
 def test_train_thesis_generates_trains_both_splits_and_evaluates(tmp_path):
     """scripts/train_thesis.py at CPU size: a 4-motion subset of the tiny preset, both splits, the
     GRU stopped by its validation motions; then the CPU-side plots and USD from what it returned."""
