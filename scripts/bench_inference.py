@@ -4,7 +4,9 @@ For each method (SNUG's 4x256 GRU, the ch. 4 fit MLP + wrinkle GRU, LBS of the c
 one garment streamed over a held-out clip: ms per frame with every kernel launched from Python
 (``time_inference``) and replayed from a recorded frame (``cuda_graph=True``,
 :class:`simgen.learn.streaming.GraphedStream`), and the largest difference [m] between the two
-streams' garments over the whole clip (the graph must reproduce the eager frames).
+streams' garments over the whole clip (the graph must reproduce the eager frames). For the
+supervised model also with its post-processes: eagerly (the thesis's push; the metric one) and,
+on CUDA, the network from the graph followed by the eager body and post-process.
 
     python scripts/bench_inference.py --device cuda --supervised runs/thesis/model [--snug runs/snug]
 
@@ -61,6 +63,36 @@ def stream_difference(stepper, clip, device) -> float:
     return worst
 
 
+@torch.no_grad()
+def graphed_with_postprocess(model, clip, device, frames: int, kind: str, warmup: int = 10) -> dict:
+    """ms per frame of the supervised model's network replayed from a CUDA graph, then, eagerly, the
+    posed body and the post-process of ``kind``: "push" (the thesis's per-vertex push, as
+    ``step(postprocess=True)``) or "metric" (``postprocess_frames(relax=True)``)."""
+    import time
+
+    from simgen.learn.collision import push_out
+    from simgen.learn.streaming import GraphedStream
+
+    b, p, t = (torch.as_tensor(x, dtype=torch.float32, device=device) for x in clip[:3])
+    stream, times = GraphedStream(model, clip[3]), []
+    for k in range(warmup + frames):
+        i = k % len(p)
+        torch.cuda.synchronize(device)
+        t0 = time.perf_counter()
+        posed = stream.step(b[i:i + 1], p[i:i + 1], t[i:i + 1])
+        body = model.body(b[i:i + 1], p[i:i + 1], t[i:i + 1])[0]
+        if kind == "push":
+            push_out(posed, body, model.surface, clearance=model.clearance)
+        else:
+            model.postprocess_frames(posed, body, relax=True)
+        torch.cuda.synchronize(device)
+        if k >= warmup:
+            times.append((time.perf_counter() - t0) * 1e3)
+    a = np.asarray(times)
+    return {"mean_ms": float(a.mean()), "std_ms": float(a.std()), "median_ms": float(np.median(a)),
+            "frames": int(len(a)), "cuda_graph": "network only"}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--device", default="cuda")
@@ -95,6 +127,12 @@ def main() -> None:
         rows[name]["max_difference_m"] = stream_difference(stepper, clip, dev)
     rows["supervised"]["with_postprocess_eager"] = time_inference(sup, *clip[:3], clip[3], device=dev,
                                                                   postprocess=True, frames=a.frames)
+    rows["supervised"]["with_metric_postprocess_eager"] = time_inference(sup, *clip[:3], clip[3], device=dev,
+                                                                         postprocess=True, relax=True,
+                                                                         frames=a.frames)
+    if dev.type == "cuda":
+        for kind in ("push", "metric"):
+            rows["supervised"][f"cuda_graph_then_{kind}"] = graphed_with_postprocess(sup, clip, dev, a.frames, kind)
     print(json.dumps({"device": torch.cuda.get_device_name(dev) if dev.type == "cuda" else "cpu",
                       "commit": commit(), "torch": torch.__version__, "clip": a.clip, "frames": a.frames,
                       "garment_vertices": int(sup.fit.num_vertices), "supervised_weights": note,
