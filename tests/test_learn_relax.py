@@ -33,6 +33,14 @@ def _sheet(n=10, size=0.2, bump=0.0):
     return np.column_stack([g, z]), np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
 
 
+def _over_cap(seed: int, height: float, noise: float):
+    """The default sheet raised to ``height`` [m] over the body sphere's cap (it cuts the sheet),
+    with Gaussian noise of ``noise`` [m]: (rest (V, 3), faces, prediction (V, 3) float64 tensor)."""
+    rest, faces = _sheet()
+    rng = np.random.default_rng(seed)
+    return rest, faces, torch.tensor(rest + [0.0, 0.0, height] + rng.normal(scale=noise, size=rest.shape))
+
+
 _BODY: dict = {}
 
 
@@ -156,9 +164,7 @@ def test_fidelity_bounds_a_uniform_stretch_between_rest_and_prediction():
 
 def test_contacts_leave_every_vertex_outside_and_flag_the_moved_ones():
     """A sheet cut by a sphere's cap: all vertices end >= clearance outside; moved = start contacts | final push."""
-    rest, faces = _sheet()
-    rng = np.random.default_rng(5)
-    p = torch.tensor(rest + [0.0, 0.0, 0.285] + rng.normal(scale=0.003, size=rest.shape))
+    rest, faces, p = _over_cap(5, 0.285, 0.003)
     bv, surface = _body()
     relax = MetricRelax(rest, faces, dtype=F64)
     out, moved = relax(p, bv, surface, clearance=CLEARANCE)
@@ -180,9 +186,7 @@ def test_contacts_leave_every_vertex_outside_and_flag_the_moved_ones():
 def test_contact_planes_alone_hold_a_convex_body_off():
     """On a convex body each tangent half-space lies outside it: with every vertex in the contact band,
     the iterations alone end >= clearance outside, and the final push moves nothing."""
-    rest, faces = _sheet()
-    rng = np.random.default_rng(5)
-    p = torch.tensor(rest + [0.0, 0.0, 0.285] + rng.normal(scale=0.003, size=rest.shape))
+    rest, faces, p = _over_cap(5, 0.285, 0.003)
     bv, surface = _body()
     relax = MetricRelax(rest, faces, contact_band=0.1, dtype=F64)
     before_push, touching = relax._relax(p[None], bv[None], surface, CLEARANCE)
@@ -231,9 +235,8 @@ def test_bad_input_raises_input_error_naming_the_argument():
 
 def test_single_frame_equals_a_batch_of_one():
     """(V, 3) input gives exactly the (1, V, 3) result, and frames of a batch are relaxed independently."""
-    rest, faces = _sheet()
-    rng = np.random.default_rng(6)
-    p = torch.tensor(rest + [0.0, 0.0, 0.29] + rng.normal(scale=0.004, size=rest.shape))
+    rest, faces, p = _over_cap(6, 0.29, 0.004)
+    rng = np.random.default_rng(16)     # another frame's noise
     q = torch.tensor(rest + FAR + rng.normal(scale=0.004, size=rest.shape))
     bv, surface = _body()
     relax = MetricRelax(rest, faces, dtype=F64)
@@ -248,9 +251,7 @@ def test_the_gpu_factor_solves_like_the_cpu_factor():
     """The dense inverse a GPU gets (here built on the CPU) relaxes exactly as the CPU's sparse LU."""
     from simgen.learn.relax import _dense_inverse
 
-    rest, faces = _sheet()
-    rng = np.random.default_rng(7)
-    p = torch.tensor(rest + [0.0, 0.0, 0.29] + rng.normal(scale=0.004, size=rest.shape))
+    rest, faces, p = _over_cap(7, 0.29, 0.004)
     bv, surface = _body()
     relax = MetricRelax(rest, faces, dtype=F64)
     by_lu, moved_lu = relax(p, bv, surface)
