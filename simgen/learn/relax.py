@@ -31,19 +31,28 @@ Dynamics: Fusing Constraint Projections for Fast Simulation", without the inerti
   (float64 Cholesky there), so that a step is one (V, V) @ (V, 3N) product for all N frames, with no
   host synchronisation.
 
-Each step lowers E, so E never rises over the iterations (without contacts).
+Each plain step lowers E, so E never rises over plain iterations (without contacts). The
+iterations are accelerated by Chebyshev's semi-iterative method as Wang (2015, "A Chebyshev
+Semi-Iterative Approach for Accelerating Projective and Position-based Dynamics") does for PD:
+x_{k+1} = omega_k (y_{k+1} - x_{k-1}) + x_{k-1}, y_{k+1} the plain step from x_k, with weights from an
+estimate rho of the plain iteration's spectral radius (:func:`chebyshev_weights`); the fixed point is
+the same, reached in fewer iterations, but E may rise on the way. The defaults (16 iterations,
+rho 0.95, fidelity 10 m^-2) were chosen on held-out sequences of the thesis-tshirt model
+(BENCHMARKS.md, "The metric post-process's settings").
 
-Contacts: the body is queried once, at the start (:meth:`CollisionSurface.query`). Every vertex whose
-signed distance d is below ``clearance + contact_band`` keeps the tangent plane through its closest
-point c = x - d n (n the outward unit normal), and after every global step it is projected onto the
-half-space ``clearance`` outside that plane: x <- x + max(0, clearance - (x - c).n) n. A final
+Contacts: the body is queried at the start and every ``CONTACT_REFRESH`` iterations
+(:meth:`CollisionSurface.query`; the cloth slides as its metric returns, and planes of the start
+would let vertices outside the band at the start sink in). Every vertex whose signed distance d is
+below ``clearance + contact_band`` keeps the tangent plane through its closest point c = x - d n
+(n the outward unit normal), and after every global step it is projected onto the half-space
+``clearance`` outside that plane: x <- x + max(0, clearance - (x - c).n) n. A final
 :func:`~simgen.learn.collision.push_out` leaves no vertex closer than ``clearance`` to the body (the
 planes only approximate the body near the start positions).
 
 Cost per iteration: one batched 2x2 closed form per triangle and the global solve. On a GPU the dense
 inverse holds V^2 entries (78 MB at V = 4405 in float32), read once per iteration; there is no Python
-loop over triangles or vertices and no host synchronisation inside the iterations (they can be
-captured in a CUDA graph). A dense inverse on the CPU would read those 78 MB per iteration at memory
+loop over triangles or vertices and no host synchronisation between two contact queries (those
+iterations can be captured in a CUDA graph; a query checks its result on the host). A dense inverse on the CPU would read those 78 MB per iteration at memory
 speed (tens of ms), hence the sparse factor there.
 """
 
@@ -60,13 +69,33 @@ from simgen.errors import InputError
 from simgen.learn.collision import DEFAULT_CLEARANCE, CollisionSurface, MeshSpread, push_out
 from simgen.physics.rest import triangle_rest_frames
 
-__all__ = ["MetricRelax", "PUSH_TOLERANCE", "polar_factor"]
+__all__ = ["MetricRelax", "PUSH_TOLERANCE", "chebyshev_weights", "polar_factor"]
 
 #: [m] A final push shorter than this does not count a vertex as moved (rounding at the planes).
 PUSH_TOLERANCE = 1e-9
 
+#: Plain local/global steps before the Chebyshev weights start (the fast modes settle first).
+CHEBYSHEV_DELAY = 2
+
+#: Iterations between queries of the body for the contact planes (the first at the start).
+CONTACT_REFRESH = 8
+
 # F^T = D X for the triangle's vertex rows X (3, 3): the edge operator [[-1, 1, 0], [-1, 0, 1]].
 _EDGES = ((-1.0, 1.0, 0.0), (-1.0, 0.0, 1.0))
+
+
+def chebyshev_weights(iterations: int, spectral_radius: float, delay: int = CHEBYSHEV_DELAY) -> tuple:
+    """The weights omega_k (k = 0 .. iterations - 1) of Chebyshev semi-iterative acceleration (Wang 2015,
+    "A Chebyshev Semi-Iterative Approach for Accelerating Projective and Position-based Dynamics"):
+    x_{k+1} = omega_k (y_{k+1} - x_{k-1}) + x_{k-1}, y_{k+1} the plain local/global step from x_k.
+    1 for the first ``delay`` iterations (and all of them for spectral_radius 0: plain steps), then
+    2 / (2 - rho^2), then omega <- 4 / (4 - rho^2 omega), rho the spectral radius [-] in [0, 1)."""
+    rho2, out, omega = float(spectral_radius) ** 2, [], 1.0
+    for k in range(iterations):
+        if rho2 > 0.0 and k >= delay:
+            omega = 2.0 / (2.0 - rho2) if k == delay else 4.0 / (4.0 - rho2 * omega)
+        out.append(omega)
+    return tuple(out)
 
 
 def polar_factor(ft: torch.Tensor) -> torch.Tensor:
@@ -92,13 +121,15 @@ class MetricRelax:
 
     rest_positions [m] (V, 3): the garment's rest shape (template); faces (F, 3) int: its triangles
     (every vertex in one at least, no triangle degenerate at rest); fidelity [1/m^2] > 0: the tie to
-    the prediction; iterations >= 1: local/global/contact rounds; contact_band [m] >= 0: vertices
+    the prediction; iterations >= 1: local/global/contact rounds; spectral_radius [-] in [0, 1): the
+    Chebyshev acceleration's estimate (0: plain steps); contact_band [m] >= 0: vertices
     within ``clearance + contact_band`` of the body at the start get a contact plane. Tensors are
     stored in ``dtype`` on ``device``, with the global matrix's factor for that device (module doc).
     """
 
-    def __init__(self, rest_positions, faces, *, fidelity: float = 100.0, iterations: int = 8,
-                 contact_band: float = 0.01, device=None, dtype: torch.dtype = torch.float32) -> None:
+    def __init__(self, rest_positions, faces, *, fidelity: float = 10.0, iterations: int = 16,
+                 spectral_radius: float = 0.95, contact_band: float = 0.01, device=None,
+                 dtype: torch.dtype = torch.float32) -> None:
         rest, f = _check_mesh(rest_positions, faces)
         if not (math.isfinite(float(fidelity)) and float(fidelity) > 0):
             raise InputError(f"fidelity must be a finite number > 0 [1/m^2], got {fidelity}")
@@ -106,6 +137,9 @@ class MetricRelax:
             raise InputError(f"iterations must be an integer >= 1, got {iterations}")
         if not (math.isfinite(float(contact_band)) and float(contact_band) >= 0):
             raise InputError(f"contact_band must be a finite distance >= 0 [m], got {contact_band}")
+        if not 0.0 <= float(spectral_radius) < 1.0:
+            raise InputError(f"spectral_radius must be in [0, 1), got {spectral_radius}")
+        self.weights = chebyshev_weights(int(iterations), spectral_radius)
         self.fidelity, self.iterations, self.contact_band = float(fidelity), int(iterations), float(contact_band)
         self.dtype = dtype
         inv_rest, area = triangle_rest_frames(rest, f)
@@ -186,15 +220,22 @@ class MetricRelax:
 
     def _relax(self, p: torch.Tensor, body: torch.Tensor, surface: CollisionSurface,
                clearance: float) -> tuple[torch.Tensor, torch.Tensor]:
-        """The PD iterations from x = p [m] (N, V, 3) with contact planes of the start: (x [m]
-        (N, V, 3) before the final push, touching (N, V) bool: closer than ``clearance`` at the start)."""
+        """The PD iterations from x = p [m] (N, V, 3) with contact planes of the start, renewed every
+        CONTACT_REFRESH iterations: (x [m] (N, V, 3) before the final push, touching (N, V) bool:
+        closer than ``clearance`` at the start)."""
         q = surface.query(p, body)
-        normal, level, contact = _contact_planes(p, q.distance, q.normal, clearance, self.contact_band)
-        x = p
-        for _ in range(self.iterations):
-            x = self._global_step(polar_factor(self._deformation_t(x)), p)
-            x = _project_contacts(x, normal, level, contact)
-        return x, q.distance < clearance
+        touching = q.distance < clearance
+        x_prev, x = p, p
+        for k in range(self.iterations):
+            if k % CONTACT_REFRESH == 0:
+                q = q if k == 0 else surface.query(x, body)
+                normal, level, contact = _contact_planes(x, q.distance, q.normal, clearance, self.contact_band)
+            y = self._global_step(polar_factor(self._deformation_t(x)), p)
+            omega = self.weights[k]
+            if omega != 1.0:
+                y = omega * (y - x_prev) + x_prev
+            x_prev, x = x, _project_contacts(y, normal, level, contact)
+        return x, touching
 
     def _deformation_t(self, x: torch.Tensor) -> torch.Tensor:
         """F_t^T (N, F, 2, 3) (dimensionless) of every triangle for positions x [m] (N, V, 3)."""
