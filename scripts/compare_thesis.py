@@ -115,7 +115,8 @@ def main() -> None:
     split = json.loads((thesis / "model" / "split.json").read_text())
     shapes = ",".join(split["test_shapes"])
     run.start("l2", simgen("train", "gru-l2", "--dataset", str(thesis / "dataset"), "--out", str(models / "l2"),
-                           *dev, "--split", "shape", "--test-shapes", shapes, "--time-budget", str(a.l2_budget)))
+                           *dev, "--split", "shape", "--test-shapes", shapes, "--val-motions", "2",
+                           "--time-budget", str(a.l2_budget)))
     run.wait("snug", watch=("l2",))
     keep_logs(models / "snug", a.out)
     fixed = ["--epochs", str(a.ablation_epochs)]

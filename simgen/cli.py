@@ -1123,6 +1123,8 @@ def train_snug_cmd(
     epochs: Optional[int] = _G_EPOCHS, batch_size: Optional[int] = _G_BATCH, lr: Optional[float] = _G_LR,
     hidden: Optional[int] = _G_HIDDEN, features: Optional[str] = _G_FEATURES,
     seed: Optional[int] = typer.Option(None, "--seed", help="Random seed (0)."),
+    val_motions: Optional[int] = typer.Option(None, "--val-motions", help="Training motions kept out of "
+                                              "training for the validation loss that stops it (2)."),
 ) -> None:
     """Train SNUG (thesis ch. 5): a GRU garment model trained with the physics terms alone, no simulated data.
 
@@ -1134,7 +1136,7 @@ def train_snug_cmd(
 
     _warp_setup(device if device.startswith("cuda") else "cpu")  # the collision term's body query runs in Warp
     given = {"physics": physics, "epochs": epochs, "batch_size": batch_size, "lr": lr, "hidden": hidden,
-             "feature_mode": features, "seed": seed}
+             "feature_mode": features, "seed": seed, "val_motions": val_motions}
     config = replace(SnugConfig(), **{k: v for k, v in given.items() if v is not None},
                      strain=not no_strain, bending=not no_bending, gravity=not no_gravity, inertia=not no_inertia,
                      collision=not no_collision)
@@ -1159,6 +1161,9 @@ def train_gru_l2_cmd(
     time_budget: Optional[float] = _T_BUDGET, restart: bool = _T_RESTART,
     seed: Optional[int] = typer.Option(None, "--seed", help="Random seed (0)."), max_frames: Optional[int] = _T_MAXF,
     body: Optional[str] = _T_BODY,
+    validation_motions: Optional[int] = typer.Option(
+        None, "--val-motions", help="Keep this many training motions out of training for the validation loss "
+        "that stops it; default: the folder's, else none."),
 ) -> None:
     """SNUG's GRU trained with vertex L2 on the simulations (thesis Fig. 5.6 "supervised"); resumes a run."""
     from simgen.learn._cli import run_train_gru_l2
@@ -1167,7 +1172,7 @@ def train_gru_l2_cmd(
     run_train_gru_l2(dataset=dataset, out=out, device=device, epochs=epochs, batch_size=batch_size, hidden=hidden,
                      lr=lr, features=features, split=split, test_shapes=test_shapes, time_budget=time_budget,
                      restart=restart, seed=seed, max_frames=max_frames, body=body, echo=typer.echo,
-                     progress_factory=_progress)
+                     progress_factory=_progress, validation_motions=validation_motions)
 
 
 @train_app.command("softtissue")

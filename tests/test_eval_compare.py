@@ -220,16 +220,27 @@ def test_mean_curvature_of_a_sphere_and_zero_error_for_identical_meshes():
     assert curvature_error(pts[None], pts[None] + 0.01, faces)[0] < 1e-9
 
 
-def test_vertex_l2_training_lowers_its_loss(data, tmp_path):
+def test_vertex_l2_training_lowers_its_loss_and_validates_on_the_split_s_validation(data, tmp_path):
+    """The validation windows come from the split's validation sequences, never from a test group
+    (the tiny store has one training motion: its b1p2 sequence stands in for a validation motion)."""
+    from dataclasses import replace
+
     from simgen.learn import make_split
-    from simgen.learn.gru_l2 import GRU_L2_METHOD, L2_TERMS, train_gru_l2
+    from simgen.learn.gru_l2 import GRU_L2_METHOD, L2_TERMS, _L2Run, train_gru_l2
     from simgen.learn.snug import SnugConfig, load_snug_model
 
-    config = SnugConfig(hidden=16, layers=2, batch_size=1, epochs=6, lr=1e-2, lr_epochs=6, val_windows=2)
-    result = train_gru_l2(data, tmp_path, make_split(data, "motion"), config=config)
+    split = make_split(data, "motion")
+    held = [i for i in split.train_sequences if data.sequences[i].shape_id == "b1p2"]
+    split = replace(split, train_sequences=[i for i in split.train_sequences if i not in held], validation=held)
+    config = SnugConfig(hidden=16, layers=2, batch_size=1, epochs=12, lr=1e-2, lr_epochs=12, val_windows=2)
+    run = _L2Run(data, split, config, torch.device("cpu"), None)
+    assert held and set(run.val.names) == set(held) and not set(run.windows.names) & set(held)
+    assert run.training_facts()["validation_motions"] == ["jumping_jacks"]
+    assert _L2Run(data, make_split(data, "motion"), config, torch.device("cpu"), None).val is None
+    result = train_gru_l2(data, tmp_path, split, config=config)
     with open(result.folder / "log.csv", newline="") as fh:
         rows = list(csv.DictReader(fh))
-    assert result.epochs == 6 and len(rows) == 6 and set(L2_TERMS) <= set(rows[0])
+    assert result.epochs == 12 and len(rows) == 12 and set(L2_TERMS) <= set(rows[0])
     assert float(rows[-1]["loss"]) < 0.8 * float(rows[0]["loss"]), (rows[0]["loss"], rows[-1]["loss"])
     assert float(rows[-1]["val_loss"]) < float(rows[0]["val_loss"])
     model = load_snug_model(tmp_path, identity=data.identity)

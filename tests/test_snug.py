@@ -113,9 +113,28 @@ def test_ablation_switch_removes_its_term(run, off):
     assert not torch.allclose(g_ablated, g_full)  # the term did pull on the positions
 
 
+def test_validation_motions_are_training_motions_kept_out():
+    """By default two of the library's training motions validate (CRC-32 order, as the supervised
+    models'), are not trained on, and no test motion is among them; a single motion trains alone."""
+    from simgen.learn.data import pick_validation_motions
+    from simgen.motion import list_motions
+
+    listed = list_motions("open")
+    train = {m["name"] for m in listed if m["split"] != "test"}
+    test = {m["name"] for m in listed if m["split"] == "test"}
+    run = _Run(GARMENT, None, replace(TINY, window_stride=600), torch.device("cpu"), None)
+    kept = set(run.validation_motions)
+    assert kept == set(pick_validation_motions(sorted(train), 2)) and len(kept) == 2
+    assert not kept & test and not kept & set(run.motions) and set(run.motions) | kept == train
+    assert set(run.val.names) <= kept and not set(run.windows.names) & kept
+    assert run.training_facts() == {"validation_motions": sorted(kept)}
+    alone = _Run(GARMENT, ["walk"], TINY, torch.device("cpu"), None)
+    assert alone.motions == ["walk"] and alone.val is None and alone.validation_motions == []
+
+
 def test_training_lowers_the_loss(tmp_path):
-    config = replace(TINY, batch_size=2, epochs=8, lr_epochs=8, val_windows=2)
-    result = train_snug(GARMENT, tmp_path, motions=["walk"], config=config)
+    config = replace(TINY, batch_size=2, epochs=8, lr_epochs=8, val_windows=2, val_motions=1)
+    result = train_snug(GARMENT, tmp_path, motions=["walk", "jumping_jacks"], config=config)
     rows = _rows(result.folder)
     assert result.epochs == 8 and result.steps == 8 and len(rows) == 8 and result.stopped == "epochs"
     first, last = float(rows[0]["val_loss"]), float(rows[-1]["val_loss"])

@@ -114,7 +114,8 @@ def run_train(kind: str, *, dataset: str, out: Path, device: str, epochs: int | 
 def run_train_gru_l2(*, dataset: str, out: Path, device: str, epochs: int | None, batch_size: int | None,
                      hidden: int | None, lr: float | None, features: str | None, split: str | None,
                      test_shapes: str | None, time_budget: float | None, restart: bool, seed: int | None,
-                     max_frames: int | None, body: str | None, echo, progress_factory) -> None:
+                     max_frames: int | None, body: str | None, echo, progress_factory,
+                     validation_motions: int | None = None) -> None:
     """Train SNUG's network with vertex L2 on a dataset's training sequences into OUT/snug/."""
     from dataclasses import replace
 
@@ -131,14 +132,14 @@ def run_train_gru_l2(*, dataset: str, out: Path, device: str, epochs: int | None
     config.check()
     model_body = _body(body)
     data = _load_data(dataset, progress_factory, body=model_body, max_frames=max_frames)
-    the_split = _split(data, out, split, test_shapes)
+    the_split = _split(data, out, split, test_shapes, validation_motions)
     progress, update = progress_factory("training the vertex-L2 GRU", config.epochs)
     with progress:
         result = train_gru_l2(data, out, the_split, config=config, device=device, time_budget=time_budget,
                               resume=not restart, body=model_body,
                               progress=lambda done, total, info: update(int(done), total))
     echo(f"vertex-L2 GRU: {result.epochs} epochs, stopped: {result.stopped}, train loss {result.train_loss:.4g} cm^2"
-         + ("" if result.val_loss is None else f", held-out motions {result.val_loss:.4g} cm^2"))
+         + ("" if result.val_loss is None else f", validation {result.val_loss:.4g} cm^2"))
     echo(f"model: {result.folder}")
 
 

@@ -37,7 +37,8 @@ import torch
 from simgen.errors import InputError
 
 __all__ = ["SequenceData", "GarmentData", "Split", "SPLIT_MODES", "load_garment_data", "attach_ground_truth",
-           "make_split", "stack_sequences", "SequenceBatch", "body_for_identity", "garment_shape_directions"]
+           "make_split", "pick_validation_motions", "stack_sequences", "SequenceBatch", "body_for_identity",
+           "garment_shape_directions"]
 
 SPLIT_MODES = ("motion", "shape")
 
@@ -333,17 +334,24 @@ def make_split(data: GarmentData, by: str = "motion", *, test_shapes=None, valid
                  validation=validation)
 
 
-def _validation(data: GarmentData, train: list[str], motions) -> list[str]:
-    """The sequences of ``train`` whose motion is a validation motion (:func:`make_split`)."""
+def pick_validation_motions(motions, count: int) -> list[str]:
+    """The ``count`` motions (names) of ``motions`` kept out of training for validation: the first in
+    the order of their names' CRC-32, a fixed order that does not follow the names' alphabet or the
+    library's listing (so every model trained on the same motions validates on the same ones)."""
     import zlib
 
+    return sorted(set(motions), key=lambda m: zlib.crc32(m.encode()))[:count]
+
+
+def _validation(data: GarmentData, train: list[str], motions) -> list[str]:
+    """The sequences of ``train`` whose motion is a validation motion (:func:`make_split`)."""
     available = sorted({data.sequences[sid].motion for sid in train})
     if motions is None or isinstance(motions, int):
         count = int(motions or 0)
         if not 0 <= count < max(len(available), 1):
             raise InputError(f"{count} validation motions asked for, but the split has {len(available)} training "
                              f"motions and needs at least one left to train on")
-        chosen = set(sorted(available, key=lambda m: zlib.crc32(m.encode()))[:count])
+        chosen = set(pick_validation_motions(available, count))
     else:
         chosen = {motions} if isinstance(motions, str) else set(motions)
         unknown = sorted(chosen - set(available))

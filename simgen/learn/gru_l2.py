@@ -21,7 +21,8 @@ What differs:
 - **loss**: the mean over vertices and frames of the squared distance between the posed prediction
   and the simulated garment, in cm^2 (log columns ``l2_cm2`` and ``error_cm``, the mean distance
   [cm]); the convergence criterion's ``min_improvement`` is then in cm^2;
-- **validation**: windows of the split's held-out-motion sequences.
+- **validation**: windows of the split's validation sequences (training motions kept out of
+  training, ``make_split(..., validation_motions=...)``; none: no convergence test).
 """
 
 from __future__ import annotations
@@ -97,7 +98,7 @@ class _L2Run(_Run):
         self.motions = sorted({self.data.sequences[i].motion for i in train})
         self.train_ids = train
         self.windows = self._windows(train, config, config.window_stride, dev)
-        val = [i for i in self.split.test.get("held_out_motion", []) if i in self.data.sequences]
+        val = [i for i in self.split.validation if i in self.data.sequences]
         self.val = None
         if val and config.val_windows:
             self.val = self._with_betas(self._windows(val, config, config.window, dev).subset(config.val_windows))
@@ -133,6 +134,8 @@ class _L2Run(_Run):
     def training_facts(self) -> dict:
         return {"dataset": self.data.source, "split": self.split.by, "test_shapes": list(self.split.test_shapes),
                 "train_sequences": len(self.train_ids),
+                "validation_motions": sorted({self.data.sequences[i].motion for i in self.split.validation
+                                             if i in self.data.sequences}),
                 "loss": "mean squared vertex distance to the simulation [cm^2] (posed, no post-process)"}
 
 

@@ -89,7 +89,9 @@ class SnugConfig:
     shape_range: float | None = setting(None, low=0.0, doc="betas ~ U(-r, r) (None: the body's range)")
     shape_components: int | None = setting(None, low=1, doc="leading shape components drawn (None: the body's)")
     hidden_init_std: float = setting(0.1, low=0.0, doc="sigma of the GRUs' initial state N(0, sigma)")
-    val_windows: int = setting(64, low=0, doc="validation windows of the test motions (0: none)")
+    val_motions: int = setting(2, low=0, doc="training motions kept out of training for the validation loss "
+                               "(CRC-32 order, as the supervised models' --val-motions; at most all but one)")
+    val_windows: int = setting(64, low=0, doc="validation windows of those motions (0: no validation)")
     batch_size: int = setting(16, low=1, doc="[windows] per optimiser step")
     lr: float = setting(1e-3, low=0.0, inclusive=False, doc="Adam learning rate of the first lr_epochs epochs")
     lr_epochs: int = setting(10, low=0, doc="[epochs] at lr before lr_final")
@@ -513,19 +515,24 @@ class _Run:
 
     def _load_windows(self, motions, config: SnugConfig, dev) -> None:
         """Set ``motions`` (clip names), ``windows`` (training) and ``val`` (validation, or None)."""
+        from simgen.learn.data import pick_validation_motions
+
         clips = _load_clips(motions, self.body, self.physics.fps, "train")
-        self.motions = [c.name for c in clips]
-        self.windows = SnugWindows(clips, self.physics.fps, config.feature_mode, window=config.window,
+        count = min(config.val_motions, len(clips) - 1) if config.val_windows else 0
+        kept = set(pick_validation_motions([c.name for c in clips], count))
+        train = [c for c in clips if c.name not in kept]
+        self.motions = [c.name for c in train]
+        self.validation_motions = sorted(kept)
+        self.windows = SnugWindows(train, self.physics.fps, config.feature_mode, window=config.window,
                                    stride=config.window_stride, device=dev)
         self.val = None
-        val_clips = _load_clips(None, self.body, self.physics.fps, "test") if config.val_windows else []
-        if val_clips:
-            self.val = SnugWindows(val_clips, self.physics.fps, config.feature_mode, window=config.window,
-                                   stride=config.window, device=dev).subset(config.val_windows)
+        if kept:
+            self.val = SnugWindows([c for c in clips if c.name in kept], self.physics.fps, config.feature_mode,
+                                   window=config.window, stride=config.window, device=dev).subset(config.val_windows)
 
     def training_facts(self) -> dict:
         """Facts of the run for config.json's "training", beside the loop's own."""
-        return {}
+        return {"validation_motions": self.validation_motions}
 
     @torch.no_grad()
     def _standardise(self, config: SnugConfig) -> None:
