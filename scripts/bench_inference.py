@@ -6,7 +6,9 @@ one garment streamed over a held-out clip: ms per frame with every kernel launch
 :class:`simgen.learn.streaming.GraphedStream`), and the largest difference [m] between the two
 streams' garments over the whole clip (the graph must reproduce the eager frames). For the
 supervised model also with its post-processes: eagerly (the thesis's push; the metric one) and,
-on CUDA, the network from the graph followed by the eager body and post-process.
+on CUDA, the network from the graph followed by the eager body and post-process. On CUDA the
+metric post-process of one frame replays its iterations from CUDA graphs of its own (between its
+body queries, :class:`simgen.learn.relax.MetricRelax`) in both.
 
     python scripts/bench_inference.py --device cuda --supervised runs/thesis/model [--snug runs/snug]
 

@@ -1123,14 +1123,17 @@ def train_snug_cmd(
     epochs: Optional[int] = _G_EPOCHS, batch_size: Optional[int] = _G_BATCH, lr: Optional[float] = _G_LR,
     hidden: Optional[int] = _G_HIDDEN, features: Optional[str] = _G_FEATURES,
     seed: Optional[int] = typer.Option(None, "--seed", help="Random seed (0)."),
-    val_motions: Optional[int] = typer.Option(None, "--val-motions", help="Training motions kept out of "
-                                              "training for the validation loss that stops it (2)."),
+    val_motions: Optional[int] = typer.Option(None, "--val-motions", help="Motions kept out of training "
+                                              "for the validation loss that stops it (2; of --motions too, "
+                                              "all but one at most)."),
 ) -> None:
     """Train SNUG (thesis ch. 5): a GRU garment model trained with the physics terms alone, no simulated data.
 
     Writes OUT/snug/ (model.pt, config.json, log.csv, train_state.pt) and resumes a run found there.
     """
     from dataclasses import replace
+
+    import json
 
     from simgen.learn.snug import SnugConfig, train_snug
 
@@ -1146,8 +1149,10 @@ def train_snug_cmd(
         result = train_snug(garment, out, motions=clips, config=config, device=device, time_budget=time_budget,
                             resume=not restart, body=_load_body(body) if body else None,
                             progress=lambda done, total, info: update(int(done), total))
+    kept = json.loads((result.folder / "config.json").read_text())["training"].get("validation_motions") or []
     typer.echo(f"SNUG: {result.epochs} epochs, stopped: {result.stopped}, train loss {result.train_loss:.4g} J/frame"
-               + ("" if result.val_loss is None else f", validation {result.val_loss:.4g} J/frame"))
+               + ("" if result.val_loss is None else f", validation {result.val_loss:.4g} J/frame on "
+                  f"{', '.join(kept)} (kept out of training)"))
     typer.echo(f"model: {result.folder}")
 
 

@@ -228,6 +228,28 @@ def test_contact_planes_alone_hold_a_convex_body_off():
     assert int(touching.sum()) > 10 and bool(moved[touching[0]].all())
 
 
+def test_renewed_planes_hold_the_sliding_cloth_off_before_the_final_push():
+    """The noisy sheet over the cap slides as its metric returns: vertices outside the 1-cm band at
+    the start reach the sphere later. With the planes renewed every CONTACT_REFRESH iterations none
+    is inside the clearance before the final push (with the start's planes only, 10 end 2.4 cm in)."""
+    rest, faces, p = _over_cap(5, 0.285, 0.003)
+    bv, surface = _body()
+    relax = MetricRelax(rest, faces, iterations=64, dtype=F64)
+    assert int((surface.query(p, bv).distance < CLEARANCE + relax.contact_band).sum()) < len(rest)
+    before_push, _ = relax._relax(p[None], bv[None], surface, CLEARANCE)
+    assert surface.query(before_push, bv[None]).distance.min() >= CLEARANCE - 1e-9
+
+
+def test_with_contacts_the_default_acceleration_ends_where_plain_steps_do():
+    """The sheet over the cap, 128 iterations: rho 0.95 (the default) reaches the energy of plain steps."""
+    rest, faces, p = _over_cap(5, 0.285, 0.003)
+    bv, surface = _body()
+    energy = MetricRelax(rest, faces, dtype=F64).energy
+    ends = [float(energy(MetricRelax(rest, faces, iterations=128, spectral_radius=rho, dtype=F64)._relax(
+        p[None], bv[None], surface, CLEARANCE)[0][0], p)) for rho in (0.0, 0.95)]
+    assert abs(ends[1] - ends[0]) < 1e-4 * ends[0], ends
+
+
 def test_collapsed_triangles_give_finite_output():
     """Triangles whose three vertices coincide (F = 0) and a collinear one give finite R, output and energy."""
     rest, faces = _sheet()
@@ -251,6 +273,9 @@ def test_bad_input_raises_input_error_naming_the_argument():
         MetricRelax(rest, faces, fidelity=0.0)
     with pytest.raises(InputError, match="iterations"):
         MetricRelax(rest, faces, iterations=0)
+    for rho in (1.0, -0.1, float("nan")):
+        with pytest.raises(InputError, match="spectral_radius"):
+            MetricRelax(rest, faces, spectral_radius=rho)
     with pytest.raises(InputError, match="rest_positions"):
         MetricRelax(rest[:, :2], faces)
     with pytest.raises(InputError, match="faces"):
@@ -309,3 +334,26 @@ def test_a_float32_gpu_factor_stays_precise_far_from_the_origin():
     relax._lu, relax.ainv = None, _dense_inverse(relax.matrix, torch.device("cpu")).float()
     single, _ = relax(torch.tensor(p, dtype=torch.float32), bv.float(), surface)
     assert (single.double() - exact).abs().max() < 1e-5
+    # With the sphere moved with the sheet (it cuts through it) float32 still leaves every vertex out.
+    near = bv.float() + torch.tensor(offset, dtype=torch.float32)
+    held, moved = relax(torch.tensor(p, dtype=torch.float32), near, surface)
+    assert surface.query(held, near).distance.min() >= CLEARANCE - 1e-5 and int(moved.sum()) > 100
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_one_frame_replayed_from_cuda_graphs_equals_the_eager_iterations():
+    """On a GPU one frame's iterations replay CUDA graphs (one per stretch between body queries); two
+    frames run eagerly: the first of two equal frames matches the graphed frame, also on a second call."""
+    rest, faces, p = _over_cap(6, 0.285, 0.004)
+    bv, surface = _body()
+    dev = torch.device("cuda")
+    relax = MetricRelax(rest, faces, device=dev)
+    one = p.float().to(dev)
+    body = bv.float().to(dev)
+    graphed, moved = relax(one, body, surface)
+    eager, moved2 = relax(torch.stack([one, one]), torch.stack([body, body]), surface)
+    assert len(relax._graphs.graphs) == 2
+    assert (graphed - eager[0]).abs().max() < 1e-5 and torch.equal(moved, moved2[0])
+    again, _ = relax(one + 0.001, body, surface)
+    shifted, _ = relax(torch.stack([one + 0.001] * 2), torch.stack([body, body]), surface)
+    assert (again - shifted[0]).abs().max() < 1e-5 and len(relax._graphs.graphs) == 2

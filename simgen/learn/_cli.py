@@ -126,6 +126,8 @@ def run_train_gru_l2(*, dataset: str, out: Path, device: str, epochs: int | None
         raise InputError(f"--time-budget must be positive seconds, got {time_budget}")
     if max_frames is not None and max_frames < 1:
         raise InputError(f"--max-frames must be at least 1, got {max_frames}")
+    if validation_motions is not None and validation_motions < 0:
+        raise InputError(f"--val-motions must be 0 or more, got {validation_motions}")
     given = {"epochs": epochs, "batch_size": batch_size, "hidden": hidden, "lr": lr, "feature_mode": features,
              "seed": seed}
     config = replace(SnugConfig(), **{k: v for k, v in given.items() if v is not None})

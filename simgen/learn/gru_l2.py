@@ -27,7 +27,7 @@ What differs:
 
 from __future__ import annotations
 
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -155,6 +155,9 @@ def train_gru_l2(data, out: str | Path, split, *, config: SnugConfig | None = No
 
     config = config or SnugConfig()
     config.check()
+    # The split, not val_motions, picks the validation: config.json records how many it holds.
+    config = replace(config, val_motions=len({data.sequences[i].motion for i in split.validation
+                                              if i in data.sequences}))
     dev = _device(device)
     run = _L2Run(data, split, config, dev, body)  # checks data and split: nothing written yet
     out = Path(out)

@@ -36,9 +36,11 @@ iterations are accelerated by Chebyshev's semi-iterative method as Wang (2015, "
 Semi-Iterative Approach for Accelerating Projective and Position-based Dynamics") does for PD:
 x_{k+1} = omega_k (y_{k+1} - x_{k-1}) + x_{k-1}, y_{k+1} the plain step from x_k, with weights from an
 estimate rho of the plain iteration's spectral radius (:func:`chebyshev_weights`); the fixed point is
-the same, reached in fewer iterations, but E may rise on the way. The defaults (16 iterations,
-rho 0.95, fidelity 10 m^-2) were chosen on held-out sequences of the thesis-tshirt model
-(BENCHMARKS.md, "The metric post-process's settings").
+the same without contacts, reached in fewer iterations, but E may rise on the way. With contacts
+the overshoot can carry vertices across other planes before those are renewed: on a test sheet
+over a sphere rho 0.95 ends where plain steps do, rho 0.99 stops at 8x their energy. The defaults
+(16 iterations, rho 0.95, fidelity 10 m^-2) were chosen on held-out sequences of the
+thesis-tshirt model (BENCHMARKS.md, "The metric post-process's settings").
 
 Contacts: the body is queried at the start and every ``CONTACT_REFRESH`` iterations
 (:meth:`CollisionSurface.query`; the cloth slides as its metric returns, and planes of the start
@@ -47,13 +49,15 @@ below ``clearance + contact_band`` keeps the tangent plane through its closest p
 (n the outward unit normal), and after every global step it is projected onto the half-space
 ``clearance`` outside that plane: x <- x + max(0, clearance - (x - c).n) n. A final
 :func:`~simgen.learn.collision.push_out` leaves no vertex closer than ``clearance`` to the body (the
-planes only approximate the body near the start positions).
+planes only approximate the body near the positions of the last query).
 
 Cost per iteration: one batched 2x2 closed form per triangle and the global solve. On a GPU the dense
-inverse holds V^2 entries (78 MB at V = 4405 in float32), read once per iteration; there is no Python
-loop over triangles or vertices and no host synchronisation between two contact queries (those
-iterations can be captured in a CUDA graph; a query checks its result on the host). A dense inverse on the CPU would read those 78 MB per iteration at memory
-speed (tens of ms), hence the sparse factor there.
+inverse holds V^2 entries (78 MB at V = 4405 in float32), read once per iteration; there is no
+Python loop over triangles or vertices and no host synchronisation between two contact queries (a
+query checks its result on the host), so for one frame on a GPU each such stretch is replayed from
+a CUDA graph (a frame's few hundred small kernels take longer to launch from Python than to run);
+batches of frames run eagerly. A dense inverse on the CPU would read those 78 MB per iteration at
+memory speed (tens of ms), hence the sparse factor there.
 """
 
 from __future__ import annotations
@@ -123,7 +127,7 @@ class MetricRelax:
     (every vertex in one at least, no triangle degenerate at rest); fidelity [1/m^2] > 0: the tie to
     the prediction; iterations >= 1: local/global/contact rounds; spectral_radius [-] in [0, 1): the
     Chebyshev acceleration's estimate (0: plain steps); contact_band [m] >= 0: vertices
-    within ``clearance + contact_band`` of the body at the start get a contact plane. Tensors are
+    within ``clearance + contact_band`` of the body at a query get a contact plane. Tensors are
     stored in ``dtype`` on ``device``, with the global matrix's factor for that device (module doc).
     """
 
@@ -175,6 +179,7 @@ class MetricRelax:
         if device != self._device:
             self._lu = scipy.sparse.linalg.splu(self.matrix.tocsc()) if device.type == "cpu" else None
             self.ainv = None if device.type == "cpu" else _dense_inverse(self.matrix, device).to(self.dtype)
+            self._graphs = _SegmentGraphs(self)
         self._device = device
         return self
 
@@ -222,20 +227,32 @@ class MetricRelax:
                clearance: float) -> tuple[torch.Tensor, torch.Tensor]:
         """The PD iterations from x = p [m] (N, V, 3) with contact planes of the start, renewed every
         CONTACT_REFRESH iterations: (x [m] (N, V, 3) before the final push, touching (N, V) bool:
-        closer than ``clearance`` at the start)."""
+        closer than ``clearance`` at the start). One frame on a GPU replays each stretch between two
+        queries from a CUDA graph (:class:`_SegmentGraphs`)."""
         q = surface.query(p, body)
         touching = q.distance < clearance
         x_prev, x = p, p
-        for k in range(self.iterations):
-            if k % CONTACT_REFRESH == 0:
-                q = q if k == 0 else surface.query(x, body)
-                normal, level, contact = _contact_planes(x, q.distance, q.normal, clearance, self.contact_band)
+        for start in range(0, self.iterations, CONTACT_REFRESH):
+            if start:
+                q = surface.query(x, body)
+            planes = _contact_planes(x, q.distance, q.normal, clearance, self.contact_band)
+            stop = min(start + CONTACT_REFRESH, self.iterations)
+            if self._device.type == "cuda" and len(p) == 1:
+                x_prev, x = self._graphs.run(start, stop, x_prev, x, p, *planes)
+            else:
+                x_prev, x = self._iterate(start, stop, x_prev, x, p, *planes)
+        return x, touching
+
+    def _iterate(self, start: int, stop: int, x_prev, x, p, normal, level, contact):
+        """Iterations start .. stop - 1 from (x_{k-1}, x_k) [m] (N, V, 3) with fixed contact planes:
+        the plain step, the Chebyshev weight, the planes' projection; returns the last two iterates."""
+        for k in range(start, stop):
             y = self._global_step(polar_factor(self._deformation_t(x)), p)
             omega = self.weights[k]
             if omega != 1.0:
                 y = omega * (y - x_prev) + x_prev
             x_prev, x = x, _project_contacts(y, normal, level, contact)
-        return x, touching
+        return x_prev, x
 
     def _deformation_t(self, x: torch.Tensor) -> torch.Tensor:
         """F_t^T (N, F, 2, 3) (dimensionless) of every triangle for positions x [m] (N, V, 3)."""
@@ -279,6 +296,42 @@ class MetricRelax:
             raise InputError(f"body_vertices must have shape ({frames}, {surface.num_vertices}, 3) or "
                              f"({surface.num_vertices}, 3) for {frames} frame(s) of points, got {tuple(b.shape)}")
         return b.to(device=self.device, dtype=self.dtype)
+
+
+class _SegmentGraphs:
+    """CUDA graphs of :meth:`MetricRelax._iterate` for one frame, one per stretch (start, stop)
+    between two contact queries: a frame's iterations are a few hundred small kernels, launched from
+    Python in more time than they run. The first call of a stretch warms it up on a side stream and
+    records it; every call copies its inputs into the recording's buffers, replays it and returns
+    copies of the two iterates (equal to the eager ones: tests/test_learn_relax.py on a GPU)."""
+
+    def __init__(self, relax: MetricRelax) -> None:
+        self.relax = relax
+        self.graphs: dict = {}
+
+    def run(self, start: int, stop: int, *inputs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """inputs: x_prev, x, p [m] (1, V, 3), normal (1, V, 3), level [m] (1, V), contact (1, V) bool."""
+        key = (start, stop, tuple(tuple(t.shape) for t in inputs), inputs[0].dtype)
+        if key not in self.graphs:
+            self.graphs[key] = self._record(start, stop, inputs)
+        graph, buffers, outputs = self.graphs[key]
+        for buf, t in zip(buffers, inputs):
+            buf.copy_(t)
+        graph.replay()
+        return outputs[0].clone(), outputs[1].clone()
+
+    def _record(self, start: int, stop: int, inputs) -> tuple:
+        buffers = tuple(t.clone() for t in inputs)
+        device = buffers[0].device
+        side = torch.cuda.Stream(device=device)
+        side.wait_stream(torch.cuda.current_stream(device))
+        with torch.cuda.stream(side):   # warm-up (cuBLAS and the allocator settle before recording)
+            self.relax._iterate(start, stop, *buffers)
+        torch.cuda.current_stream(device).wait_stream(side)
+        graph = torch.cuda.CUDAGraph()
+        with torch.cuda.graph(graph):
+            outputs = self.relax._iterate(start, stop, *buffers)
+        return graph, buffers, outputs
 
 
 def _check_mesh(rest_positions, faces) -> tuple[torch.Tensor, torch.Tensor]:
