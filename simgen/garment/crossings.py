@@ -197,8 +197,7 @@ class CrossingCounter:
                             for k in range(self.instances)]
             self._mesh_ids = wp.array([m.id for m in self._meshes], dtype=wp.uint64, device=self.device)
             self._counted = MeshIdSubset(self._meshes, self.device)
-        for k in instances:
-            self._meshes[k].refit()
+        self._counted.refit(instances)
 
     def _launch(self) -> None:
         self._refit(range(self.instances))
@@ -213,8 +212,8 @@ class CrossingCounter:
     def count_points(self, points: wp.array, instances=None) -> np.ndarray:
         """Crossing edges of every copy, int64 (instances,), at positions [m] already on the device:
         float32 points (instances * V,) vec3 (e.g. a batched cloth state's positions). instances:
-        the copies to count (None: all); the others count 0 and their BVHs are not refit (a pool's
-        idle slots)."""
+        the copies to count (None: all); the others count 0 (a pool's idle slots; their BVHs are
+        refit only on CUDA, where one graph refits all)."""
         chosen = tuple(range(self.instances)) if instances is None else tuple(sorted(int(k) for k in instances))
         if any(not 0 <= k < self.instances for k in chosen):
             raise InputError(f"instances {list(chosen)} are not all among the counter's {self.instances} copies")

@@ -152,8 +152,7 @@ class FrameStats:
         from simgen.sim.placement import placement_rows
 
         chosen = range(len(self.winding_meshes)) if instances is None else sorted(instances)
-        for k in chosen:
-            self.winding_meshes[k].refit()
+        self._measured.refit(chosen)
         model = self.model
         wp.launch(classify_inside, dim=model.num_vertices, device=model.device,
                   inputs=[positions, model.vertex_instance, self._measured.of(chosen), self.query_distance,
