@@ -65,36 +65,6 @@ def stream_difference(stepper, clip, device) -> float:
     return worst
 
 
-@torch.no_grad()
-def graphed_with_postprocess(model, clip, device, frames: int, kind: str, warmup: int = 10) -> dict:
-    """ms per frame of the supervised model's network replayed from a CUDA graph, then, eagerly, the
-    posed body and the post-process of ``kind``: "push" (the thesis's per-vertex push, as
-    ``step(postprocess=True)``) or "metric" (``postprocess_frames(relax=True)``)."""
-    import time
-
-    from simgen.learn.collision import push_out
-    from simgen.learn.streaming import GraphedStream
-
-    b, p, t = (torch.as_tensor(x, dtype=torch.float32, device=device) for x in clip[:3])
-    stream, times = GraphedStream(model, clip[3]), []
-    for k in range(warmup + frames):
-        i = k % len(p)
-        torch.cuda.synchronize(device)
-        t0 = time.perf_counter()
-        posed = stream.step(b[i:i + 1], p[i:i + 1], t[i:i + 1])
-        body = model.body(b[i:i + 1], p[i:i + 1], t[i:i + 1])[0]
-        if kind == "push":
-            push_out(posed, body, model.surface, clearance=model.clearance)
-        else:
-            model.postprocess_frames(posed, body, relax=True)
-        torch.cuda.synchronize(device)
-        if k >= warmup:
-            times.append((time.perf_counter() - t0) * 1e3)
-    a = np.asarray(times)
-    return {"mean_ms": float(a.mean()), "std_ms": float(a.std()), "median_ms": float(np.median(a)),
-            "frames": int(len(a)), "cuda_graph": "network only"}
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--device", default="cuda")
@@ -134,7 +104,9 @@ def main() -> None:
                                                                          frames=a.frames)
     if dev.type == "cuda":
         for kind in ("push", "metric"):
-            rows["supervised"][f"cuda_graph_then_{kind}"] = graphed_with_postprocess(sup, clip, dev, a.frames, kind)
+            rows["supervised"][f"cuda_graph_then_{kind}"] = time_inference(
+                sup, *clip[:3], clip[3], device=dev, postprocess=True, relax=kind == "metric", frames=a.frames,
+                cuda_graph=True)
     print(json.dumps({"device": torch.cuda.get_device_name(dev) if dev.type == "cuda" else "cpu",
                       "commit": commit(), "torch": torch.__version__, "clip": a.clip, "frames": a.frames,
                       "garment_vertices": int(sup.fit.num_vertices), "supervised_weights": note,

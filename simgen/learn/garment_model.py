@@ -212,10 +212,15 @@ class GarmentModel(BodyCollision):
             a = joint_transforms(self.body, betas, pose, trans)
             return lbs_torch(rest[:, 0], self.template.skin_weights, a)
         bv, _, a = self.body(betas, pose, trans)
-        posed = lbs_torch(rest[:, 0], self.template.skin_weights, a)
+        return self.finish_frame(lbs_torch(rest[:, 0], self.template.skin_weights, a), bv, relax=relax)
+
+    def finish_frame(self, posed: torch.Tensor, body_vertices: torch.Tensor, *, relax: bool = False) -> torch.Tensor:
+        """The post-process of :meth:`step`: posed garments [m] (N, V, 3) on posed bodies [m] (N, Vb, 3)
+        -> vertices [m] (N, V, 3), pushed out vertex by vertex (the thesis's), or with ``relax`` the
+        metric post-process (:meth:`postprocess_frames`)."""
         if relax:
-            return self.postprocess_frames(posed, bv, relax=True)[0]
-        return push_out(posed, bv, self.surface, clearance=self.clearance)[0]
+            return self.postprocess_frames(posed, body_vertices, relax=True)[0]
+        return push_out(posed, body_vertices, self.surface, clearance=self.clearance)[0]
 
 
 def load_garment_model(folder: str | Path, *, identity: dict | None = None, body=None, device="cpu",
