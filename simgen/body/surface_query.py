@@ -87,11 +87,14 @@ class MeshIdSubset:
         self._refits = None   # CUDA: the graph of every mesh's refit
 
     def refit(self, chosen) -> None:
-        """Refit the BVHs of the meshes ``chosen`` (instance indices) to their points. On CUDA all
-        meshes are refit by one CUDA graph, recorded at the first call: a refit is a handful of small
-        kernels, and a pool's 128 slots launched one by one from Python took 32 ms of a 432-ms frame
-        (BENCHMARKS.md); the idle ones cost little inside the graph and are never queried (id 0)."""
-        if not self.device.is_cuda:
+        """Refit the BVHs of the meshes ``chosen`` (instance indices) to their points. On CUDA, when
+        more than an eighth of the meshes are chosen, all of them are refit by one CUDA graph recorded
+        at the first such call: a refit is a handful of small kernels, and a pool's 128 slots launched
+        one by one from Python took 32 ms of a 432-ms frame (BENCHMARKS.md); idle meshes cost little
+        inside the graph and are never queried (id 0). Fewer are refit one by one. The graph holds
+        each mesh's points array and BVH: they are updated in place, never replaced."""
+        chosen = list(chosen)
+        if not self.device.is_cuda or 8 * len(chosen) <= len(self.meshes):
             for k in chosen:
                 self.meshes[k].refit()
             return

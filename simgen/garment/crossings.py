@@ -138,7 +138,8 @@ class CrossingCounter:
 
     faces (F, 3) int: the garment's triangles; num_vertices V of one copy; device: Warp device
     ("cpu", "cuda:0", ...). The BVHs are built on the first frame counted and refit for every later
-    one, each copy's only when that copy is loaded (:meth:`load`, :meth:`count_points`).
+    one, those of the copies loaded (:meth:`load`, :meth:`count_points`; on CUDA, when more than an
+    eighth are, all of them: :meth:`MeshIdSubset.refit`).
     """
 
     def __init__(self, faces, num_vertices: int, device: str = "cpu", instances: int = 1) -> None:
@@ -213,7 +214,7 @@ class CrossingCounter:
         """Crossing edges of every copy, int64 (instances,), at positions [m] already on the device:
         float32 points (instances * V,) vec3 (e.g. a batched cloth state's positions). instances:
         the copies to count (None: all); the others count 0 (a pool's idle slots; their BVHs are
-        refit only on CUDA, where one graph refits all)."""
+        refit only inside the CUDA graph of :meth:`MeshIdSubset.refit`)."""
         chosen = tuple(range(self.instances)) if instances is None else tuple(sorted(int(k) for k in instances))
         if any(not 0 <= k < self.instances for k in chosen):
             raise InputError(f"instances {list(chosen)} are not all among the counter's {self.instances} copies")

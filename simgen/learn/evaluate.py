@@ -209,6 +209,8 @@ def time_inference(model: GarmentModel, betas, poses, trans, fps: float, *, devi
     dev = torch.device(device)
     if cuda_graph and dev.type != "cuda":
         raise InputError("timing with a CUDA graph needs a CUDA device")
+    if cuda_graph and postprocess and not hasattr(model, "finish_frame"):
+        raise InputError(f"timing a {type(model).__name__} from a CUDA graph with a post-process needs a GarmentModel")
     model = model.to(dev)
     b = torch.as_tensor(betas, dtype=torch.float32, device=dev)
     p = torch.as_tensor(poses, dtype=torch.float32, device=dev)

@@ -63,6 +63,7 @@ memory speed (tens of ms), hence the sparse factor there.
 from __future__ import annotations
 
 import math
+import weakref
 
 import numpy as np
 import scipy.sparse
@@ -179,7 +180,7 @@ class MetricRelax:
         if device != self._device:
             self._lu = scipy.sparse.linalg.splu(self.matrix.tocsc()) if device.type == "cpu" else None
             self.ainv = None if device.type == "cpu" else _dense_inverse(self.matrix, device).to(self.dtype)
-            self._graphs = _SegmentGraphs(self)
+        self._graphs = _SegmentGraphs(self)    # recorded graphs read the tensors set above
         self._device = device
         return self
 
@@ -303,22 +304,25 @@ class _SegmentGraphs:
     between two contact queries: a frame's iterations are a few hundred small kernels, launched from
     Python in more time than they run. The first call of a stretch warms it up on a side stream and
     records it; every call copies its inputs into the recording's buffers, replays it and returns
-    copies of the two iterates (equal to the eager ones: tests/test_learn_relax.py on a GPU)."""
+    copies of the two iterates (the eager ones to float rounding: tests/test_learn_relax.py on a
+    GPU). A graph reads the relax's tensors as they were when it was recorded: ``MetricRelax.to``
+    starts a new set."""
 
     def __init__(self, relax: MetricRelax) -> None:
-        self.relax = relax
+        self.relax = weakref.proxy(relax)   # the relax holds this object: no reference cycle
         self.graphs: dict = {}
 
     def run(self, start: int, stop: int, *inputs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """inputs: x_prev, x, p [m] (1, V, 3), normal (1, V, 3), level [m] (1, V), contact (1, V) bool."""
         key = (start, stop, tuple(tuple(t.shape) for t in inputs), inputs[0].dtype)
-        if key not in self.graphs:
-            self.graphs[key] = self._record(start, stop, inputs)
-        graph, buffers, outputs = self.graphs[key]
-        for buf, t in zip(buffers, inputs):
-            buf.copy_(t)
-        graph.replay()
-        return outputs[0].clone(), outputs[1].clone()
+        with torch.cuda.device(inputs[0].device):    # capture and replay on the relax's GPU
+            if key not in self.graphs:
+                self.graphs[key] = self._record(start, stop, inputs)
+            graph, buffers, outputs = self.graphs[key]
+            for buf, t in zip(buffers, inputs):
+                buf.copy_(t)
+            graph.replay()
+            return outputs[0].clone(), outputs[1].clone()
 
     def _record(self, start: int, stop: int, inputs) -> tuple:
         buffers = tuple(t.clone() for t in inputs)

@@ -50,14 +50,16 @@ class GraphedStream:
             self._started = True
             return self.model.step(self.state, betas, pose, trans, self.fps, postprocess=False)
         if self.graph is None:
-            self._record(betas, pose, trans)
+            with torch.cuda.device(betas.device):    # capture on the stream's GPU, not the current one
+                self._record(betas, pose, trans)
         for name, buf, x in zip(("betas", "pose", "trans"), self._inputs, (betas, pose, trans)):
             if x.shape != buf.shape:
                 raise InputError(f"a graphed stream keeps the shapes it was recorded with: {name} has shape "
                                  f"{tuple(x.shape)}, the recording {tuple(buf.shape)} (start a new stream)")
         for buf, x in zip(self._inputs, (betas, pose, trans)):
             buf.copy_(x)
-        self.graph.replay()
+        with torch.cuda.device(betas.device):
+            self.graph.replay()
         return self._output
 
     def _record(self, betas, pose, trans) -> None:

@@ -146,7 +146,8 @@ class FrameStats:
     def measure(self, positions: wp.array, betas: np.ndarray, instances=None, host_positions=None) -> list[dict | None]:
         """One dict per instance (keys: the penetration and placement entries of FRAME_STAT_KEYS);
         betas (N, B): each instance's body shape now; instances: those to measure (None: all), the
-        others' entries are None (a pool's idle slots: their bodies are neither refit nor queried);
+        others' entries are None (a pool's idle slots: never queried; their bodies are refit only
+        inside the CUDA graph of :meth:`MeshIdSubset.refit`);
         host_positions: ``positions`` already on the host (V, 3), to spare a second copy."""
         from simgen.body._warp_kernels import skinning_kernel
         from simgen.sim.placement import placement_rows
