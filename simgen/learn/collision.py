@@ -95,11 +95,15 @@ class CollisionSurface:
         if self.backend == "torch":
             return body_distance(points, vertices, self.surface)
         frames = [self._warp_query(points[i], vertices[i]) for i in range(points.shape[0])]
-        return BodyDistance(*(torch.stack(t) for t in zip(*frames)))
+        distance, normal, face, bary = (torch.stack(t) for t in zip(*frames))
+        if bool((face < 0).any()):    # one host synchronisation per call, not per frame
+            raise InputError("collision post-process: some garment points found no body triangle")
+        return BodyDistance(distance, normal, face, bary)
 
     def _warp_query(self, x: torch.Tensor, verts: torch.Tensor):
-        """(distance (P,), normal (P, 3), face (P,) int64, bary (P, 3)) of points x [m] (P, 3) on the
-        body with vertices verts [m] (V, 3), both float32 or float64."""
+        """(distance (P,), normal (P, 3), face (P,) int64 (-1: none found), bary (P, 3)) of points
+        x [m] (P, 3) on the body with vertices verts [m] (V, 3), both float32 or float64; launched on
+        torch's current stream without waiting for it."""
         import warp as wp
 
         from simgen._warp_log import init_warp
@@ -134,8 +138,6 @@ class CollisionSurface:
                       outputs=[wp.from_torch(distance), wp.from_torch(normal, dtype=vec3),
                                wp.from_torch(closest, dtype=vec3), wp.from_torch(face),
                                wp.from_torch(bary, dtype=vec3)])
-        if bool((face < 0).any()):
-            raise InputError("collision post-process: some garment points found no body triangle")
         return distance, normal, face.long(), bary
 
 
