@@ -479,9 +479,9 @@ def run_pool_task(task: BatchTask, *, progress=None, on_outcome=None, deadline: 
     or dropped come back in ``not_done``, the planned cloth-frames of the dropped ones in
     ``abandoned_cloth_frames``. Jobs whose node is already committed (an earlier attempt of this
     task) are not simulated again; a failed job with attempts left runs again in the same pool
-    while the pool will step for longer than the retry takes (:class:`_PoolRetries`). Returns {outcomes, error,
-    not_done, abandoned_cloth_frames, slots, wall, cloth_frames, step_s, write_s, write_wait,
-    retry_cloth_frames, retry_wall, clock}: slots: the pool's; wall [s] the pool's frames
+    while the pool will step for longer than the retry takes (:class:`_PoolRetries`). Returns
+    {outcomes, error, not_done, abandoned_cloth_frames, slots, wall, cloth_frames, step_s, write_s,
+    write_wait, retry_cloth_frames, retry_wall, clock}: slots: the pool's; wall [s] the pool's frames
     (simulation, statistics, host copies); step_s [s] the solver's stepping within them; write_s
     [s] the node writes; write_wait [s] the part of them the simulation waited for; retry_*: the
     later attempts' frames and their share of the wall; clock: time.time() at start, fed (the

@@ -16,8 +16,8 @@ One store per garment (docs/architecture.md, "Dataset store"). For each store th
    frame: ``execution.retry_strain_outliers``, ``retry_depth_outliers``) runs again with the
    substep halved, up to ``max_attempts``:
    in the same pool (a slot at twice the substeps beside the others) while the pool will step for
-   longer than the retry takes, else in a later pool, with the other failures of its attempt that are known by
-   then, started as soon as a worker is free (on Ray, while the other pools still step); a failed template
+   longer than the retry takes, else in a later pool, with the other failures of its attempt that
+   are known by then, started as soon as a worker is free (on Ray, while the other pools still step); a failed template
    relaxation runs again alone first, since the fits need it, and fits that ended before it was
    written run again after it.
 

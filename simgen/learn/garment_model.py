@@ -202,8 +202,8 @@ class GarmentModel(BodyCollision):
         """One frame for N streams (the runtime loop of thesis Table 4.1).
 
         betas (N, B); pose (N, 24, 3); trans (N, 3); state is updated in place. Returns vertices [m]
-        (N, V, 3): with ``postprocess`` the thesis's per-vertex push-out, with ``relax`` as well the
-        metric post-process (:meth:`postprocess_frames`).
+        (N, V, 3): with ``postprocess`` the thesis's per-vertex push-out, or with ``relax`` the metric
+        post-process instead (:meth:`finish_frame`).
         """
         features = motion_features(pose[:, None], trans[:, None], fps, self.feature_mode, previous=state.previous)
         rest, state.hidden = self.unposed(betas[:, None], features, state.hidden)
