@@ -40,6 +40,13 @@ def _contact(mesh: wp.uint64, part_masks: wp.array(dtype=wp.int32), home: wp.arr
     own[i] = took
 
 
+@pytest.fixture(autouse=True)
+def _on_cpu():
+    """Arrays made without a device land on the CPU, where _launch runs (a GPU machine defaults to cuda)."""
+    with wp.ScopedDevice("cpu"):
+        yield
+
+
 def _launch(kernel, dim, inputs, outputs):
     out = [wp.zeros(dim, dtype=dtype) for dtype in outputs]
     wp.launch(kernel, dim=dim, inputs=inputs, outputs=out, device="cpu")
@@ -193,34 +200,38 @@ def test_statistics_rule_counts_buried_surfaces_and_cloth_kept_on_its_part_as_se
 
 
 @wp.kernel(enable_backward=False)
-def _nearest(mesh: wp.uint64, x: wp.array(dtype=wp.vec3), distance: wp.array(dtype=wp.float32)):
+def _nearest(mesh: wp.uint64, x: wp.array(dtype=wp.vec3), distance: wp.array(dtype=wp.float32),
+             sign: wp.array(dtype=wp.float32)):
     i = wp.tid()
     q = wp.mesh_query_point_no_sign(mesh, x[i], 0.2)
     distance[i] = -1.0
     if q.result:
         distance[i] = wp.length(x[i] - wp.mesh_eval_position(mesh, q.face, q.u, q.v))
+    w = wp.mesh_query_point_sign_winding_number(mesh, x[i], 1.0)
+    sign[i] = w.sign
 
 
 @pytest.mark.parametrize("device", ["cpu", pytest.param("cuda:0", marks=pytest.mark.skipif(
     not wp.is_cuda_available(), reason="needs a CUDA device"))])
 def test_mesh_subset_refit_follows_moved_points(device):
     """MeshIdSubset.refit: after the meshes' points move, a query reaching 0.2 m finds the moved
-    surface 0.1 m away (stale bounds would prune it; on CUDA the graph of every refit is replayed
-    again after a second move)."""
+    surface 0.1 m away (stale bounds would prune it) and the winding number (the frame statistics'
+    inside test) puts the moved centre inside; on CUDA the graph of every refit is replayed again
+    after a second move."""
     from simgen.body.surface_query import MeshIdSubset
 
     sphere = trimesh.creation.icosphere(subdivisions=3, radius=0.5)
     rest = np.asarray(sphere.vertices, dtype=np.float32)
     points = [wp.array(rest, dtype=wp.vec3, device=device) for _ in range(3)]
     indices = wp.array(np.asarray(sphere.faces, dtype=np.int32).ravel(), dtype=wp.int32, device=device)
-    meshes = [wp.Mesh(points=p, indices=indices) for p in points]
+    meshes = [wp.Mesh(points=p, indices=indices, support_winding_number=True) for p in points]
     subset = MeshIdSubset(meshes, device)
-    out = wp.zeros(1, dtype=wp.float32, device=device)
+    out, sign = (wp.zeros(2, dtype=wp.float32, device=device) for _ in range(2))
     for shift in (1.0, 2.5):
         for p in points:
             p.assign(rest + np.float32([shift, 0.0, 0.0]))
         subset.refit(range(3))
-        probe = wp.array(np.float32([[shift + 0.6, 0.0, 0.0]]), dtype=wp.vec3, device=device)
+        probe = wp.array(np.float32([[shift + 0.6, 0.0, 0.0], [shift + 0.3, 0.0, 0.0]]), dtype=wp.vec3, device=device)
         for m in meshes:
-            wp.launch(_nearest, dim=1, device=device, inputs=[m.id, probe], outputs=[out])
-            assert abs(float(out.numpy()[0]) - 0.1) < 0.01
+            wp.launch(_nearest, dim=2, device=device, inputs=[m.id, probe], outputs=[out, sign])
+            assert abs(float(out.numpy()[0]) - 0.1) < 0.01 and sign.numpy().tolist() == [1.0, -1.0]

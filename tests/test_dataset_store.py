@@ -757,6 +757,47 @@ def test_only_retries_of_this_runs_failures_start_beside_a_busy_worker():
     assert [b for _, _, b in running.values()] == [False, True]
 
 
+def test_jobs_a_pool_refused_under_its_deadline_run_in_a_new_pool_while_time_is_left():
+    """_Driver._rounds with one worker whose first pool refuses a job under its deadline (as a full
+    pool refuses a long retry by its frame time): with budget left the job starts in the next pool;
+    with the budget spent the run stops and leaves it for the next run."""
+    from types import SimpleNamespace
+
+    from simgen.dataset.generate import StoreReport, _Driver
+
+    class RefusesOnce:
+        parallel, beside = 1, 0
+
+        def __init__(self):
+            self.started, self.handles = [], []
+
+        def start(self, tasks, budget_s, on_outcome, progress, beside=False):
+            self.started.append([j.id for t in tasks for j in t.jobs])
+            self.handles += [(len(self.started), t) for t in tasks]
+            return [h for h, _ in self.handles[-len(tasks):]]
+
+        def next(self):
+            handle, task = self.handles.pop(0)
+            time.sleep(0.05)      # the pool's frames
+            refused = [j for j in task.jobs if j.id == "b"] if handle == 1 else []
+            return handle, {"error": None, "not_done": refused, "abandoned_cloth_frames": 0, "slots": 2,
+                            "cloth_frames": 0, "wall": 0.0, "step_s": 0.0, "write_s": 0.0, "write_wait": 0.0,
+                            "retry_cloth_frames": 0, "retry_wall": 0.0, "clock": {}, "gpu_memory_high_bytes": None}
+
+    def run(time_budget):
+        workers = RefusesOnce()
+        store = SimpleNamespace(loc=SimpleNamespace(root="/store", is_local=True), save_manifest=lambda: None)
+        report = StoreReport(path="/store", garment="g", planned_sequences=2, planned_fits=0, done_before=0)
+        driver = _Driver(micro(), store, SimpleNamespace(name="g"), SimpleNamespace(hash="h"), workers, report,
+                         None, lambda msg: None, "cpu", 0.0)
+        driver._rounds([_job("a", 30), _job("b", 10)], time_budget, time.perf_counter())
+        return workers.started, report.stopped
+
+    assert run(600.0) == ([["a", "b"], ["b"]], None)
+    started, stopped = run(0.02)
+    assert started == [["a", "b"]] and stopped == "time budget of 0.02 s reached"
+
+
 def test_ray_executor_hands_failures_over_while_tasks_run_and_counts_them_once():
     """`RayExecutor.next` with a stand-in for Ray: while the task runs, the failures the meter has
     reach the driver at once, in order, and next() returns (None, None) so that their retries can

@@ -347,13 +347,15 @@ def test_one_frame_replayed_from_cuda_graphs_equals_the_eager_iterations():
     rest, faces, p = _over_cap(6, 0.285, 0.004)
     bv, surface = _body()
     dev = torch.device("cuda")
-    relax = MetricRelax(rest, faces, device=dev)
-    one = p.float().to(dev)
-    body = bv.float().to(dev)
+    # float64: in float32 the two paths' rounding differs by ~1e-7 m, enough to flip a vertex that
+    # sits on a contact band's edge in or out of its contact set (3e-5 m apart then, on an H200).
+    relax = MetricRelax(rest, faces, device=dev, dtype=F64)
+    one = p.double().to(dev)
+    body = bv.double().to(dev)
     graphed, moved = relax(one, body, surface)
     eager, moved2 = relax(torch.stack([one, one]), torch.stack([body, body]), surface)
     assert len(relax._graphs.graphs) == 2
-    assert (graphed - eager[0]).abs().max() < 1e-5 and torch.equal(moved, moved2[0])
+    assert (graphed - eager[0]).abs().max() < 1e-9 and torch.equal(moved, moved2[0])
     again, _ = relax(one + 0.001, body, surface)
     shifted, _ = relax(torch.stack([one + 0.001] * 2), torch.stack([body, body]), surface)
-    assert (again - shifted[0]).abs().max() < 1e-5 and len(relax._graphs.graphs) == 2
+    assert (again - shifted[0]).abs().max() < 1e-9 and len(relax._graphs.graphs) == 2

@@ -351,6 +351,11 @@ def _make_executor(ray: str | None, spec: DatasetSpec):
     return RayExecutor(ray, spec)
 
 
+def _seconds_left(time_budget: float | None, t_start: float) -> float | None:
+    """[s] What is left of ``time_budget`` counted from ``t_start`` (a perf_counter value); None: no budget."""
+    return None if time_budget is None else time_budget - (time.perf_counter() - t_start)
+
+
 class _Driver:
     """Runs the pending jobs of one store in pools, round by round, and keeps the store's manifest
     and the run's report (:func:`generate_dataset` step 4)."""
@@ -407,10 +412,21 @@ class _Driver:
             self.show(self.done)
             error = error or r["error"]
             if error is None and r["not_done"] and report.stopped is None:
-                report.stopped = f"time budget of {time_budget:g} s reached"
+                self._not_done(queue, r["not_done"], time_budget, t_start)
             self._requeue(queue, error)
         if error:
             raise StoreWriteError(error)
+
+    def _not_done(self, queue: list, jobs: list, time_budget: float | None, t_start: float) -> None:
+        """Jobs a pool left undone under its deadline: back into ``queue`` while the budget lasts (a
+        pool refuses a job by its own frame time, and a job refused by a full pool, such as a retry,
+        often ends in time in a smaller one started after it), else the run stops there."""
+        left = _seconds_left(time_budget, t_start)
+        if left is not None and left <= 0:
+            self.report.stopped = f"time budget of {time_budget:g} s reached"
+            return
+        queue += jobs
+        self.total += job_cloth_frames(self.spec, jobs)
 
     def _requeue(self, queue: list, error) -> None:
         """Move the retries that outcomes asked for into ``queue`` (dropped once the run stops:
@@ -428,7 +444,7 @@ class _Driver:
         free = self.executor.parallel - sum(not b for _, _, b in running.values())
         room = self.executor.beside - sum(b for _, _, b in running.values())
         while queue and (free > 0 or (room > 0 and not first)):
-            left = None if time_budget is None else time_budget - (time.perf_counter() - t_start)
+            left = _seconds_left(time_budget, t_start)
             if left is not None and left <= 0:
                 self.report.stopped = f"time budget of {time_budget:g} s reached"
                 break
