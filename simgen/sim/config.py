@@ -36,10 +36,11 @@ class SolverConfig:
     The guard checks each step for divergence (non-finite, a vertex faster than ``max_speed``, or
     with ``guard_energy`` an energy rise beyond ``divergence_ratio`` times the first Newton model's
     predicted decrease) and retries it as two half steps, up to ``max_retries`` levels. The energy
-    test needs extra energy passes (the first assembly's energy and one evaluation after each
-    step). With a stiff contact penalty E can rise within a step that stays finite and slow (the
-    projection then resolves the contact), and the test redoes such steps at up to 2^max_retries
-    finer ones: on the T-shirt every retry came from it, so the thesis presets turn it off
+    test is off by default: it needs extra energy passes (the first assembly's energy and one
+    evaluation after each step), and with a stiff contact penalty or a stiff measured knit E can
+    rise within a step that stays finite and slow (the projection then resolves the contact); the
+    test redoes such steps at up to 2^max_retries finer ones: on the T-shirt every retry came from
+    it, on a quarter of the frames in interlock, with nothing deeper in the body without it
     (measurements: BENCHMARKS.md, docs/sim.md).
     """
 
@@ -78,7 +79,7 @@ class SolverConfig:
     divergence_ratio: float = setting(10.0, low=0.0, inclusive=False,
                                       doc="[-] E may rise at most this many times the first Newton model's "
                                           "predicted decrease")
-    guard_energy: bool = setting(True, doc="the guard's energy test; False keeps its non-finite and speed tests")
+    guard_energy: bool = setting(False, doc="the guard's energy test besides its non-finite and speed tests")
 
     def __post_init__(self) -> None:
         validate(self, "solver")

@@ -17,7 +17,7 @@ step when ``newton_iterations`` = 1); pinned vertices are kinematic: they move t
 own velocity) and are removed from the linear system.
 
 Guard: after each step the solver checks (one host read) for non-finite positions, a vertex speed
-above ``max_speed`` or (``guard_energy``) an increase of E beyond ``divergence_ratio`` times the
+above ``max_speed`` or (``guard_energy``, off by default) an increase of E beyond ``divergence_ratio`` times the
 decrease the first Newton model predicted (plus a round-off allowance). A failed step is redone as
 two half steps, recursively, up to ``max_retries`` levels; retries are counted in
 :attr:`ImplicitSolver.stats`.
