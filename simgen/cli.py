@@ -1298,6 +1298,9 @@ def eval_garment_cmd(
                                       rich_help_panel=EXPERT),
     inside_stride: int = typer.Option(5, "--inside-stride", help="Test every N-th frame for cloth inside the body.",
                                       rich_help_panel=EXPERT),
+    solver_pp: str = typer.Option("auto", "--solver-pp", rich_help_panel=EXPERT,
+                                  help="Score the solver post-process too: on, off or auto (with a GPU; on the CPU "
+                                       "it takes seconds per frame)."),
     max_frames: Optional[int] = _T_MAXF, body: Optional[str] = _T_BODY,
 ) -> None:
     """Errors vs LBS and linear regression (Figs. 4.6, 4.7), collisions, timing and size vs Table 4.1."""
@@ -1306,7 +1309,7 @@ def eval_garment_cmd(
     _warp_setup(device)
     run_eval_garment(model=model, dataset=dataset, out=out, device=device, timing=not no_timing,
                      timing_frames=timing_frames, inside_stride=inside_stride, max_frames=max_frames, body=body,
-                     echo=typer.echo, progress_factory=_progress)
+                     solver_pp=solver_pp, echo=typer.echo, progress_factory=_progress)
 
 
 # --------------------------------------------------------------------------------------------- eval physics

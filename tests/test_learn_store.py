@@ -77,7 +77,7 @@ def test_train_eval_compare_through_the_cli(store, tmp_path, capsys):
 
     ev = tmp_path / "eval"
     code, out, err = run(["eval", "garment", "--model", str(model), "--dataset", str(store), "--out", str(ev),
-                          "--timing-frames", "5", "--inside-stride", "2"], capsys)
+                          "--timing-frames", "5", "--inside-stride", "2", "--solver-pp", "on"], capsys)
     assert code == 0, err
     assert "mean vertex error [cm]" in out and "thesis (i7-6700 + Titan X)" in out
     metrics = json.loads((ev / "metrics.json").read_text())
@@ -89,6 +89,11 @@ def test_train_eval_compare_through_the_cli(store, tmp_path, capsys):
     # The metric post-process: no vertex inside, and the prediction's triangle strain cut.
     assert group["inside_percent"]["model_relaxed"] <= group["inside_percent"]["model"]
     assert group["triangle_strain"]["model_relaxed"] < 0.5 * group["triangle_strain"]["model_raw"]
+    # The solver post-process (the store's own material and settings): out of the body too, and the
+    # cloth's metric kept closer than the metric post-process keeps it.
+    assert group["inside_percent"]["model_solver"] <= group["inside_percent"]["model"]
+    assert group["triangle_strain"]["model_solver"] < group["triangle_strain"]["model_relaxed"]
+    assert metrics["solver_postprocess"]["frames"] > 0 and "solver post-process: 20 substeps" in out
     # Strain and the per-clip rows: every method and the simulation; the clips' frame-weighted
     # errors average back to the group's.
     assert set(group["triangle_strain"]) == {"ground_truth", *group["error_cm"]}

@@ -179,7 +179,8 @@ def run_eval_compare(*, models: str, dataset: str, out: Path, test_shapes: str |
 
 
 def run_eval_garment(*, model: Path, dataset: str, out: Path, device: str, timing: bool, timing_frames: int,
-                     inside_stride: int, max_frames: int | None, body: str | None, echo, progress_factory) -> dict:
+                     inside_stride: int, max_frames: int | None, body: str | None, echo, progress_factory,
+                     solver_pp: str = "auto") -> dict:
     """Evaluate a model folder on a dataset; print the summary table; write metrics.json and plots."""
     from simgen.learn.evaluate import evaluate_garment, format_summary
     from simgen.learn.train import _device
@@ -188,6 +189,8 @@ def run_eval_garment(*, model: Path, dataset: str, out: Path, device: str, timin
         raise InputError(f"--inside-stride must be at least 1, got {inside_stride}")
     if timing_frames < 1:
         raise InputError(f"--timing-frames must be at least 1, got {timing_frames}")
+    if solver_pp not in ("auto", "on", "off"):
+        raise InputError(f"--solver-pp must be on, off or auto, got {solver_pp!r}")
     dev = _device(device)
     if not Path(model).is_dir():
         raise InputError(f"--model {model} is not a folder")
@@ -196,7 +199,9 @@ def run_eval_garment(*, model: Path, dataset: str, out: Path, device: str, timin
     progress, update = progress_factory("evaluating", 1)
     with progress:
         metrics = evaluate_garment(model, data, out, device=dev, body=model_body, timing=timing,
-                                   timing_frames=timing_frames, inside_stride=inside_stride, progress=update)
+                                   timing_frames=timing_frames, inside_stride=inside_stride,
+                                   solver_postprocess={"auto": None, "on": True, "off": False}[solver_pp],
+                                   progress=update)
     echo(format_summary(metrics))
     echo(f"metrics: {Path(out) / 'metrics.json'}")
     for p in metrics.get("plots", []):

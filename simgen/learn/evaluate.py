@@ -57,10 +57,11 @@ THESIS = {
     "epochs": 2000,
 }
 
-METHODS = ("model", "model_relaxed", "model_raw", "fit_only", "lbs", "lr_pose", "lr_shape_pose")
+METHODS = ("model", "model_relaxed", "model_solver", "model_raw", "fit_only", "lbs", "lr_pose", "lr_shape_pose")
 METHOD_LABELS = {
     "model": "ours: fit + wrinkle, post-processed",
     "model_relaxed": "ours: fit + wrinkle, metric post-process",
+    "model_solver": "ours: fit + wrinkle, solver post-process",
     "model_raw": "ours: fit + wrinkle, no post-process",
     "fit_only": "ours: fit only (no wrinkle GRU)",
     "lbs": "LBS of the template",
@@ -69,7 +70,8 @@ METHOD_LABELS = {
 }
 # The garments whose vertices inside the body and physics terms are reported, with their short labels.
 SET_LABELS = {"ground_truth": "simulation (ground truth)", "model_raw": "ours, no post-process",
-              "model": "ours, post-processed", "model_relaxed": "ours, metric post-process", "lbs": "LBS"}
+              "model": "ours, post-processed", "model_relaxed": "ours, metric post-process",
+              "model_solver": "ours, solver post-process", "lbs": "LBS"}
 
 
 def _vertex_error_cm(pred: torch.Tensor, gt: torch.Tensor) -> np.ndarray:
@@ -83,9 +85,11 @@ def _identity(data: GarmentData) -> dict:
 
 # ------------------------------------------------------------------------------------ predictions
 @torch.no_grad()
-def _predict_all(model: GarmentModel, lrs: dict, betas, poses, trans, fps: float) -> dict[str, torch.Tensor]:
+def _predict_all(model: GarmentModel, lrs: dict, betas, poses, trans, fps: float,
+                 solver_post=None) -> dict[str, torch.Tensor]:
     """Every method's garment [m] (T, V, 3) for one sequence, plus 'moved' (T, V) of the post-process
-    (the thesis's; "model_relaxed" is the metric post-process of the same raw prediction)."""
+    (the thesis's; "model_relaxed" is the metric post-process of the same raw prediction and
+    "model_solver", with ``solver_post`` (a :class:`SolverPostProcess`), the solver's)."""
     dev = model.device
     b = torch.as_tensor(betas, dtype=torch.float32, device=dev)
     p = torch.as_tensor(poses, dtype=torch.float32, device=dev)
@@ -93,6 +97,8 @@ def _predict_all(model: GarmentModel, lrs: dict, betas, poses, trans, fps: float
     pred = model.predict(b, p, t, fps, postprocess=True)
     out = {"model": pred.vertices, "model_raw": pred.raw, "moved": pred.moved}
     out["model_relaxed"] = model.push_out_sequence(pred.raw, b, p, t, relax=True)[0]
+    if solver_post is not None:
+        out["model_solver"] = solver_post(pred.raw, model.body(b, p, t)[0])
     a = pred.transforms
     out["fit_only"] = lbs_baseline_fit(model, b, a)
     out["lbs"] = lbs_baseline(model.template, b, a)
@@ -100,6 +106,18 @@ def _predict_all(model: GarmentModel, lrs: dict, betas, poses, trans, fps: float
         f = motion_features(p, t, fps, lr.feature_mode)
         out[f"lr_{name}"] = linear_baseline(lr, model.template, b, f, a)
     return out
+
+
+def _solver_post(data: GarmentData, body, warp_device: str):
+    """The :class:`SolverPostProcess` of ``data`` on its body, or None when the data lacks the
+    solver's rest template, material or settings (data not read from a store)."""
+    from simgen.learn.data import body_for_identity
+    from simgen.learn.solver_post import SolverPostProcess
+
+    try:
+        return SolverPostProcess.from_data(data, body_for_identity(data.identity, body), device=warp_device)
+    except InputError:
+        return None
 
 
 def lbs_baseline_fit(model: GarmentModel, betas: torch.Tensor, transforms: torch.Tensor) -> torch.Tensor:
@@ -280,14 +298,17 @@ def _mean(values) -> float | None:
 def evaluate_garment(model_dir: str | Path, data: GarmentData, out_dir: str | Path | None = None, *, device="cpu",
                      body=None, timing: bool = True, timing_frames: int = 100, inside_stride: int = 5,
                      train_sequences: int = 4, physics_sequences: int = 4, max_sequences: int | None = None,
-                     plots: bool = True, progress=None) -> dict:
+                     plots: bool = True, solver_postprocess: bool | None = None, progress=None) -> dict:
     """Evaluate the models in ``model_dir`` on ``data``; write OUT/metrics.json (and plots).
 
     device: where predictions run; inside_stride: test every N-th frame for vertices inside the body
     (a Warp winding-number query per frame); train_sequences: how many training sequences to score
     too (to see over-fitting); physics_sequences: how many held-out-motion sequences get the
     ``simgen.physics`` terms (0: none); max_sequences: at most this many sequences per test group
-    (None: all); progress(done, total) per sequence. Returns the metrics dict.
+    (None: all); solver_postprocess: also score the solver post-process ("model_solver",
+    :mod:`simgen.learn.solver_post`) where the data has the solver's settings (None: on a GPU only;
+    on the CPU it takes seconds per frame of a 4k-vertex garment); progress(done, total) per
+    sequence. Returns the metrics dict.
     """
     dev = torch.device(device)
     model = load_garment_model(model_dir, identity=_identity(data), body=body, device=dev)
@@ -305,7 +326,10 @@ def evaluate_garment(model_dir: str | Path, data: GarmentData, out_dir: str | Pa
         raise InputError("the dataset holds none of the model's test sequences")
     total = sum(len(v) for v in groups.values())
 
-    methods = [m for m in METHODS if not m.startswith("lr_") or m[3:] in lrs]
+    wanted = dev.type == "cuda" if solver_postprocess is None else solver_postprocess
+    solver_post = _solver_post(data, body, warp_device) if wanted else None
+    methods = [m for m in METHODS if (not m.startswith("lr_") or m[3:] in lrs)
+               and (m != "model_solver" or solver_post is not None)]
     per_seq: dict[str, dict] = {}
     group_frames: dict[str, dict[str, list]] = {}
     inside: dict[str, dict[str, list]] = {}
@@ -316,7 +340,7 @@ def evaluate_garment(model_dir: str | Path, data: GarmentData, out_dir: str | Pa
     for group, ids in groups.items():
         for sid in ids:
             s = data.sequences[sid]
-            preds = _predict_all(model, lrs, s.betas, s.poses, s.trans, s.fps)
+            preds = _predict_all(model, lrs, s.betas, s.poses, s.trans, s.fps, solver_post=solver_post)
             gt = torch.as_tensor(s.vertices, device=dev)
             errs = {m: _vertex_error_cm(preds[m], gt) for m in methods}
             moved = float(preds["moved"].float().mean()) if preds["moved"] is not None else 0.0
@@ -366,11 +390,13 @@ def evaluate_garment(model_dir: str | Path, data: GarmentData, out_dir: str | Pa
                      for name, sub in (("fit", FIT_DIR), ("wrinkle", WRINKLE_DIR))
                      if (Path(model_dir) / sub / "config.json").is_file()},
         "groups": summary, "sequences": per_seq,
-        "shape_static": _shape_static(model, lrs, data, split, methods),
+        "shape_static": _shape_static(model, lrs, data, split, methods, solver_post=solver_post),
         "shape_motion": _shape_motion(per_seq, data, split, methods),
         "clearance_m": model.clearance,
         "thesis": THESIS,
     }
+    if solver_post is not None:
+        metrics["solver_postprocess"] = solver_post.report()
     if physics_sequences > 0:
         try:
             from simgen.learn.data import body_for_identity
@@ -430,11 +456,12 @@ def _cpu_name() -> str:
 
 
 @torch.no_grad()
-def _shape_static(model: GarmentModel, lrs: dict, data: GarmentData, split, methods, rest_frames: int = 30) -> dict:
+def _shape_static(model: GarmentModel, lrs: dict, data: GarmentData, split, methods, rest_frames: int = 30,
+                  solver_post=None) -> dict:
     """Errors on the rest-pose fit simulations S_c(beta, 0) of every shape (Fig. 4.6, static pose).
 
     The wrinkle GRU is run for ``rest_frames`` frames of the rest pose and its last frame used (the
-    static pose's steady state).
+    static pose's steady state; the solver post-process runs on that frame alone).
     """
     rows = []
     dev = model.device
@@ -447,6 +474,9 @@ def _shape_static(model: GarmentModel, lrs: dict, data: GarmentData, split, meth
         poses = np.zeros((rest_frames, 24, 3), dtype=np.float32)
         trans = np.zeros((rest_frames, 3), dtype=np.float32)
         preds = _predict_all(model, lrs, np.repeat(entry["betas"][None], rest_frames, 0), poses, trans, 30.0)
+        if solver_post is not None:
+            last = [torch.as_tensor(a[-1:], device=dev) for a in (poses, trans)]
+            preds["model_solver"] = solver_post(preds["model_raw"][-1:], model.body(b, *last)[0])
         gt = torch.as_tensor(entry["vertices"], device=dev)[None]
         err = {m: float(_vertex_error_cm(preds[m][-1:], gt)[0]) for m in methods}
         rows.append({"shape_id": sid, "betas": [float(x) for x in entry["betas"]], "component": comp, "value": value,
@@ -511,11 +541,12 @@ def format_summary(metrics: dict) -> str:
     if clips:
         lines.append("")
         lines.append(f"{'held-out clips (training shapes)':40s}{'ours [cm]':>14s}{'LBS [cm]':>14s}"
-                     f"{'strain sim.':>14s}{'strain ours':>14s}{'ours, metric':>14s}")
+                     f"{'strain sim.':>14s}{'strain ours':>14s}{'ours, metric':>14s}{'ours, solver':>14s}")
         for motion, row in clips.items():
             err, st = row["mean_error_cm"], row["triangle_strain"]
             lines.append(f"{motion:40s}{err['model']:14.3f}{err['lbs']:14.3f}{st['ground_truth']:14.5f}"
-                         f"{st['model']:14.5f}{st.get('model_relaxed', float('nan')):14.5f}")
+                         f"{st['model']:14.5f}{st.get('model_relaxed', float('nan')):14.5f}"
+                         f"{st.get('model_solver', float('nan')):14.5f}")
     phys = metrics.get("physics") or {}
     rows = [m for m in SET_LABELS if isinstance(phys.get(m), dict)]
     if rows:
@@ -541,6 +572,11 @@ def format_summary(metrics: dict) -> str:
                 graphed = [row.get(f"{k}_cuda_graph", {}).get("mean_ms", float("nan"))
                            for k in ("without_postprocess", "with_postprocess", "with_metric_postprocess")]
                 lines.append(f"{'  the same, the model from a CUDA graph':40s}" + "".join(f"{v:18.2f}" for v in graphed))
+    sp = metrics.get("solver_postprocess")
+    if sp:
+        lines.append("")
+        lines.append(f"solver post-process: {sp['substeps']} substeps of {1e3 * sp['dt']:.2f} ms per frame, "
+                     f"{sp['ms_per_frame']:.1f} ms per frame ({sp['chunk']} frames at a time)")
     size = metrics.get("size_mb") or {}
     if size:
         lines.append("")
