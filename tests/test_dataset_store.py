@@ -760,7 +760,8 @@ def test_only_retries_of_this_runs_failures_start_beside_a_busy_worker():
 def test_jobs_a_pool_refused_under_its_deadline_run_in_a_new_pool_while_time_is_left():
     """_Driver._rounds with one worker whose first pool refuses a job under its deadline (as a full
     pool refuses a long retry by its frame time): with budget left the job starts in the next pool;
-    with the budget spent the run stops and leaves it for the next run."""
+    with the budget spent, or when the pool also dropped running jobs at its deadline, the run stops
+    and leaves it for the next run."""
     from types import SimpleNamespace
 
     from simgen.dataset.generate import StoreReport, _Driver
@@ -768,8 +769,8 @@ def test_jobs_a_pool_refused_under_its_deadline_run_in_a_new_pool_while_time_is_
     class RefusesOnce:
         parallel, beside = 1, 0
 
-        def __init__(self):
-            self.started, self.handles = [], []
+        def __init__(self, abandoned):
+            self.started, self.handles, self.abandoned = [], [], abandoned
 
         def start(self, tasks, budget_s, on_outcome, progress, beside=False):
             self.started.append([j.id for t in tasks for j in t.jobs])
@@ -780,13 +781,15 @@ def test_jobs_a_pool_refused_under_its_deadline_run_in_a_new_pool_while_time_is_
             handle, task = self.handles.pop(0)
             time.sleep(0.05)      # the pool's frames
             refused = [j for j in task.jobs if j.id == "b"] if handle == 1 else []
-            return handle, {"error": None, "not_done": refused, "abandoned_cloth_frames": 0, "slots": 2,
-                            "cloth_frames": 0, "wall": 0.0, "step_s": 0.0, "write_s": 0.0, "write_wait": 0.0,
-                            "retry_cloth_frames": 0, "retry_wall": 0.0, "clock": {}, "gpu_memory_high_bytes": None}
+            return handle, {"error": None, "not_done": refused, "abandoned_cloth_frames": self.abandoned,
+                            "slots": 2, "cloth_frames": 0, "wall": 0.0, "step_s": 0.0, "write_s": 0.0,
+                            "write_wait": 0.0, "retry_cloth_frames": 0, "retry_wall": 0.0, "clock": {},
+                            "gpu_memory_high_bytes": None}
 
-    def run(time_budget):
-        workers = RefusesOnce()
-        store = SimpleNamespace(loc=SimpleNamespace(root="/store", is_local=True), save_manifest=lambda: None)
+    def run(time_budget, abandoned=0):
+        workers = RefusesOnce(abandoned)
+        store = SimpleNamespace(loc=SimpleNamespace(root="/store", is_local=True), save_manifest=lambda: None,
+                                done=lambda kind, node_id: False)
         report = StoreReport(path="/store", garment="g", planned_sequences=2, planned_fits=0, done_before=0)
         driver = _Driver(micro(), store, SimpleNamespace(name="g"), SimpleNamespace(hash="h"), workers, report,
                          None, lambda msg: None, "cpu", 0.0)
@@ -796,6 +799,7 @@ def test_jobs_a_pool_refused_under_its_deadline_run_in_a_new_pool_while_time_is_
     assert run(600.0) == ([["a", "b"], ["b"]], None)
     started, stopped = run(0.02)
     assert started == [["a", "b"]] and stopped == "time budget of 0.02 s reached"
+    assert run(600.0, abandoned=5) == ([["a", "b"]], "time budget of 600 s reached")
 
 
 def test_ray_executor_hands_failures_over_while_tasks_run_and_counts_them_once():

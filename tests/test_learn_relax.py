@@ -359,3 +359,11 @@ def test_one_frame_replayed_from_cuda_graphs_equals_the_eager_iterations():
     again, _ = relax(one + 0.001, body, surface)
     shifted, _ = relax(torch.stack([one + 0.001] * 2), torch.stack([body, body]), surface)
     assert (again - shifted[0]).abs().max() < 1e-9 and len(relax._graphs.graphs) == 2
+    # float32, the GPU's default: the same to the rounding and those flips (a stale graph input
+    # would be 1 mm off).
+    relax32 = MetricRelax(rest, faces, device=dev)
+    for shift in (0.0, 0.001):
+        one32, body32 = (p + shift).float().to(dev), bv.float().to(dev)
+        graphed32, _ = relax32(one32, body32, surface)
+        eager32, _ = relax32(torch.stack([one32, one32]), torch.stack([body32, body32]), surface)
+        assert (graphed32 - eager32[0]).abs().max() < 1e-4

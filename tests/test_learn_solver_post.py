@@ -38,10 +38,10 @@ def _sphere(radius: float = 0.3):
     return np.asarray(s.vertices), np.asarray(s.faces)
 
 
-def _post(rest, faces, body_faces, substeps: int, config=None) -> SolverPostProcess:
+def _post(rest, faces, body_faces, substeps: int, config=None, device: str = "cpu") -> SolverPostProcess:
     return SolverPostProcess(rest, faces, np.zeros(len(rest), dtype=np.int32), "cotton",
                              config or SolverConfig(), H, body_faces, np.ones(len(body_faces), dtype=np.int32),
-                             substeps=substeps, chunk=8)
+                             substeps=substeps, chunk=8, device=device)
 
 
 def _mean_strain2(x: np.ndarray, rest: np.ndarray, faces: np.ndarray) -> float:
@@ -57,14 +57,16 @@ def _mean_strain2(x: np.ndarray, rest: np.ndarray, faces: np.ndarray) -> float:
     return float((e * e).sum((1, 2)).mean())
 
 
-def test_a_sheet_at_rest_falls_as_backward_euler_says():
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda:0", marks=pytest.mark.skipif(
+    not torch.cuda.is_available(), reason="needs a CUDA device"))])
+def test_a_sheet_at_rest_falls_as_backward_euler_says(device):
     """A sheet at its rest shape, rotated and far from the body and the floor, only falls: after K
     substeps of h from rest, backward Euler has moved every vertex by g h^2 K (K + 1) / 2 (its
     membrane and bending stay zero under a translation), on every frame of a call."""
     rest, faces = _sheet()
     bv, bf = _sphere()
     k = 6
-    post = _post(rest, faces, bf, k)
+    post = _post(rest, faces, bf, k, device=device)
     rot = trimesh.transformations.rotation_matrix(0.7, [1.0, 0.3, 0.2])[:3, :3]
     frames = np.stack([rest @ rot.T + [2.0, 1.0, 0.0], rest + [0.0, 2.0, 1.5], rest + [-2.0, 1.0, 0.0]])
     out = post(torch.tensor(frames), torch.tensor(np.stack([bv] * 3))).numpy()

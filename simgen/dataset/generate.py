@@ -412,19 +412,23 @@ class _Driver:
             self.show(self.done)
             error = error or r["error"]
             if error is None and r["not_done"] and report.stopped is None:
-                self._not_done(queue, r["not_done"], time_budget, t_start)
+                self._not_done(queue, r, time_budget, t_start)
             self._requeue(queue, error)
         if error:
             raise StoreWriteError(error)
 
-    def _not_done(self, queue: list, jobs: list, time_budget: float | None, t_start: float) -> None:
-        """Jobs a pool left undone under its deadline: back into ``queue`` while the budget lasts (a
-        pool refuses a job by its own frame time, and a job refused by a full pool, such as a retry,
-        often ends in time in a smaller one started after it), else the run stops there."""
+    def _not_done(self, queue: list, r: dict, time_budget: float | None, t_start: float) -> None:
+        """The jobs pool task ``r`` left undone: back into ``queue`` when the pool only refused them
+        (a pool refuses a job by its own frame time, and a job refused by a full pool, such as a
+        retry, often ends in time in a smaller one started after it) and budget is left; the new
+        pool starts them as any first wave, before its frame time is known. A pool that dropped
+        running jobs at its deadline, or a spent budget, stops the run there. Jobs the store already
+        holds (a task that Ray ran again) are not queued again."""
         left = _seconds_left(time_budget, t_start)
-        if left is not None and left <= 0:
+        if r["abandoned_cloth_frames"] > 0 or (left is not None and left <= 0):
             self.report.stopped = f"time budget of {time_budget:g} s reached"
             return
+        jobs = [j for j in r["not_done"] if not self.store.done(j.kind, j.id)]
         queue += jobs
         self.total += job_cloth_frames(self.spec, jobs)
 

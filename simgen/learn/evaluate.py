@@ -108,15 +108,18 @@ def _predict_all(model: GarmentModel, lrs: dict, betas, poses, trans, fps: float
     return out
 
 
-def _solver_post(data: GarmentData, body, warp_device: str):
-    """The :class:`SolverPostProcess` of ``data`` on its body, or None when the data lacks the
-    solver's rest template, material or settings (data not read from a store)."""
+def _solver_post(data: GarmentData, body, warp_device: str, required: bool):
+    """The :class:`SolverPostProcess` of ``data`` on its body; when the data lacks the solver's rest
+    template, material or settings (data not read from a store): None, or the InputError if
+    ``required``."""
     from simgen.learn.data import body_for_identity
     from simgen.learn.solver_post import SolverPostProcess
 
     try:
         return SolverPostProcess.from_data(data, body_for_identity(data.identity, body), device=warp_device)
     except InputError:
+        if required:
+            raise
         return None
 
 
@@ -327,7 +330,7 @@ def evaluate_garment(model_dir: str | Path, data: GarmentData, out_dir: str | Pa
     total = sum(len(v) for v in groups.values())
 
     wanted = dev.type == "cuda" if solver_postprocess is None else solver_postprocess
-    solver_post = _solver_post(data, body, warp_device) if wanted else None
+    solver_post = _solver_post(data, body, warp_device, solver_postprocess is True) if wanted else None
     methods = [m for m in METHODS if (not m.startswith("lr_") or m[3:] in lrs)
                and (m != "model_solver" or solver_post is not None)]
     per_seq: dict[str, dict] = {}
@@ -362,7 +365,7 @@ def evaluate_garment(model_dir: str | Path, data: GarmentData, out_dir: str | Pa
                             torch.as_tensor(s.trans[frames], device=dev))[0].cpu().numpy()
             for k, f in enumerate(frames):
                 sets = {"ground_truth": s.vertices[f], **{m: preds[m][f].cpu().numpy() for m in SET_LABELS
-                                                           if m != "ground_truth"}}
+                                                           if m != "ground_truth" and m in preds}}
                 for m, frac in _inside_fraction(sets, bv[k], faces, warp_device).items():
                     inside.setdefault(group, {}).setdefault(m, []).append(frac)
             if group == "held_out_motion" and len(physics_runs) < physics_sequences:
@@ -575,8 +578,9 @@ def format_summary(metrics: dict) -> str:
     sp = metrics.get("solver_postprocess")
     if sp:
         lines.append("")
-        lines.append(f"solver post-process: {sp['substeps']} substeps of {1e3 * sp['dt']:.2f} ms per frame, "
-                     f"{sp['ms_per_frame']:.1f} ms per frame ({sp['chunk']} frames at a time)")
+        lines.append(f"solver post-process: {sp['substeps']} substeps of {1e3 * sp['dt']:.2f} ms (simulated time) "
+                     f"per frame; it took {sp['ms_per_frame']:.1f} ms per frame, {sp['chunk']} frames at a time; "
+                     f"{sp['diverged_frames']} frames diverged (left raw)")
     size = metrics.get("size_mb") or {}
     if size:
         lines.append("")

@@ -8,13 +8,18 @@ lay inside the torso is pushed out against the arm (BENCHMARKS.md). :class:`Solv
 hands each predicted frame to the simulation's own solver (:class:`simgen.sim.ImplicitSolver`, with
 the dataset's material and solver settings): the cloth starts at the prediction, at rest, on the
 frame's posed body (held still), and steps ``substeps`` substeps of the dataset's substep length.
-Backward Euler from rest minimises the cloth's energy plus the inertia term sum_v m_v |x_v -
-p_v|^2 / (2 h^2), a tie to the prediction p, so each substep is a metric relaxation whose tie, the
+The first substep, backward Euler from rest, minimises the cloth's energy plus the inertia term
+sum_v m_v |x_v - p_v|^2 / (2 h^2): a metric relaxation tied to the prediction p, with the
 membrane, bending and contact laws and the contact rules (penalty, projection, the body part rule,
-friction) are those the ground truth was made with. Gravity acts on the way (for 20 substeps of
-1/300 s, 1/15 s: a free hem would fall 2 cm; a supported one sags by far less).
+friction) the ground truth was made with. The later substeps carry on from there as a short
+simulation (their inertia term ties to x_k + h v_k), in which the strain the first one left
+relaxes and the pushed-out vertices settle. Gravity acts on the way (for 20 substeps of 1/300 s,
+1/15 s: a free hem would fall 2.3 cm; a supported one sags far less).
 
-Every frame is its own cloth instance on its own body; a call steps its frames ``chunk`` at a time.
+Every frame is its own cloth instance on its own body; a call steps its frames ``chunk`` at a time,
+each chunk from a clean solver (no friction contacts or CG guesses carried over). A chunk whose
+step diverges (:class:`simgen.sim.SolverDivergedError` after the guard's retries) keeps the raw
+prediction and is counted in :meth:`SolverPostProcess.report`.
 Waistband attachments are not modelled: they hold a garment over a whole sequence, and these steps
 last two frames' time.
 """
@@ -81,7 +86,7 @@ class SolverPostProcess:
         self.body_part_masks = np.asarray(body_part_masks, dtype=np.int32)
         self.substeps, self.chunk, self.device = int(substeps), int(chunk), str(device)
         self._solvers: dict = {}     # instances -> (ClothModel, ImplicitSolver)
-        self.seconds, self.frames = 0.0, 0   # [s] spent in calls, frames post-processed
+        self.seconds, self.frames, self.diverged = 0.0, 0, 0   # [s] spent in calls, frames done, left raw
 
     @classmethod
     def from_data(cls, data, body, **kw) -> SolverPostProcess:
@@ -119,25 +124,32 @@ class SolverPostProcess:
 
     def report(self) -> dict:
         """Its settings and cost so far: substeps, dt [s], chunk, seconds, frames, ms_per_frame
-        (frames stepped ``chunk`` at a time)."""
+        (frames stepped ``chunk`` at a time), diverged_frames (left raw)."""
         return {"substeps": self.substeps, "dt": self.dt, "chunk": self.chunk, "seconds": round(self.seconds, 3),
-                "frames": self.frames, "ms_per_frame": 1e3 * self.seconds / max(self.frames, 1)}
+                "frames": self.frames, "ms_per_frame": 1e3 * self.seconds / max(self.frames, 1),
+                "diverged_frames": self.diverged}
 
     def _step(self, x: np.ndarray, body: np.ndarray) -> np.ndarray:
         """One chunk: n frames [m] (n, V, 3) float32 on bodies (n, Vb, 3) -> (n, V, 3). The chunk is
         padded with copies of its last frame to a power of two (at least 8), so that a few model
         sizes serve every sequence length."""
-        from simgen.sim import BodyCollider
+        from simgen.sim import BodyCollider, SolverDivergedError
 
         n = len(x)
         size = max(8, 1 << (n - 1).bit_length())
         pad = np.r_[np.arange(n), np.full(size - n, n - 1)]
         model, solver = self._solver(size)
+        solver.reset_contacts()             # friction's lagged contacts were another chunk's
+        solver.forget_steps(range(size))    # and so were the CG warm starts
         state = model.state()
         state.positions.assign(x[pad].reshape(-1, 3))
         state.velocities.zero_()
         collider = BodyCollider(body[pad], self.body_faces, part_masks=self.body_part_masks, device=self.device)
-        solver.step(state, state, collider, self.dt * self.substeps, substeps=self.substeps)
+        try:
+            solver.step(state, state, collider, self.dt * self.substeps, substeps=self.substeps)
+        except SolverDivergedError:
+            self.diverged += n
+            return x
         return state.positions.numpy().reshape((size,) + x.shape[1:])[:n]
 
     def _solver(self, n: int):
