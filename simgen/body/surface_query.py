@@ -89,10 +89,11 @@ class MeshIdSubset:
     def refit(self, chosen) -> None:
         """Refit the BVHs of the meshes ``chosen`` (instance indices) to their points. On CUDA, when
         more than an eighth of the meshes are chosen, all of them are refit by one CUDA graph recorded
-        at the first such call: a refit is a handful of small kernels, and a pool's 128 slots launched
-        one by one from Python took 32 ms of a 432-ms frame (BENCHMARKS.md); idle meshes cost little
-        inside the graph and are never queried (id 0). Fewer are refit one by one. The graph holds
-        each mesh's points array and BVH: they are updated in place, never replaced."""
+        at the first such call, which spares the Python launches of a handful of kernels per mesh
+        (about 9 of the 32 ms that a pool's 128 slots took one by one; the rest is the refits' GPU
+        work: BENCHMARKS.md); idle meshes are refit too but never queried (id 0). Fewer are refit one
+        by one. The graph holds each mesh's points array and BVH: they are updated in place, never
+        replaced."""
         chosen = list(chosen)
         if not self.device.is_cuda or 8 * len(chosen) <= len(self.meshes):
             for k in chosen:

@@ -17,9 +17,9 @@ One store per garment (docs/architecture.md, "Dataset store"). For each store th
    substep halved, up to ``max_attempts``:
    in the same pool (a slot at twice the substeps beside the others) while the pool will step for
    longer than the retry takes, else in a later pool, with the other failures of its attempt that
-   are known by then, started as soon as a worker is free (on Ray, while the other pools still step); a failed template
-   relaxation runs again alone first, since the fits need it, and fits that ended before it was
-   written run again after it.
+   are known by then, started as soon as a worker is free (on Ray, while the other pools still
+   step); a failed template relaxation runs again alone first, since the fits need it, and fits
+   that ended before it was written run again after it.
 
 ``max_sequences`` and ``time_budget`` make a run do a part of the plan (the store stays resumable:
 the next run continues); under a time budget a pool starts no job that it would not finish in time,
