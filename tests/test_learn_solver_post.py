@@ -74,6 +74,7 @@ def test_a_sheet_at_rest_falls_as_backward_euler_says(device):
     expected = frames + np.array([0.0, -drop, 0.0])
     assert np.abs(out - expected).max() < 1e-2 * drop     # the CG solves stop at a relative 1e-3
     assert post.frames == 3 and post.report()["substeps"] == k
+    assert post.report()["retried_frames"] == 0 and post.report()["diverged_frames"] == 0
 
 
 def test_a_noisy_sheet_sunk_into_the_body_ends_outside_with_its_metric_restored():
@@ -98,6 +99,20 @@ def test_a_noisy_sheet_sunk_into_the_body_ends_outside_with_its_metric_restored(
     assert np.linalg.norm(pred, axis=1).min() < r - 0.005
     assert _mean_strain2(out, rest, faces) < 0.05 * _mean_strain2(pred, rest, faces)
     assert np.linalg.norm(out - pred, axis=1).max() < 0.02
+
+
+def test_frames_the_guard_cannot_resolve_are_stepped_again_then_left_raw():
+    """With a speed limit no falling sheet keeps (1 mm/s), the guard fails every step at every
+    half-step level and the solver keeps the frames as unresolved: each is stepped once more at
+    half the substep, fails again and comes back as the prediction itself, all counted."""
+    rest, faces = _sheet(5)
+    bv, bf = _sphere()
+    post = _post(rest, faces, bf, 2, SolverConfig(max_speed=1.0e-3, max_retries=1))
+    frames = np.stack([rest + [0.0, 1.0, 0.0], rest + [0.5, 1.2, 0.0]])
+    out = post(torch.tensor(frames), torch.tensor(np.stack([bv] * 2))).numpy()
+    assert np.array_equal(out, frames.astype(np.float32).astype(np.float64))
+    rep = post.report()
+    assert rep["retried_frames"] == 2 and rep["diverged_frames"] == 2 and rep["frames"] == 2
 
 
 def test_the_solver_settings_come_back_from_a_stores_attributes():
