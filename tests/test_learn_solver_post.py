@@ -74,7 +74,9 @@ def test_a_sheet_at_rest_falls_as_backward_euler_says(device):
     expected = frames + np.array([0.0, -drop, 0.0])
     assert np.abs(out - expected).max() < 1e-2 * drop     # the CG solves stop at a relative 1e-3
     assert post.frames == 3 and post.report()["substeps"] == k
-    assert post.report()["retried_frames"] == 0 and post.report()["diverged_frames"] == 0
+    rep = post.report()
+    assert rep["retried_frames"] == 0 and rep["diverged_frames"] == 0 and rep["guard_retries"] == 0
+    assert rep["newton_per_substep"] == 1.0 and rep["cg_per_substep"] >= 1.0   # one chunk of k substeps
 
 
 def test_a_noisy_sheet_sunk_into_the_body_ends_outside_with_its_metric_restored():

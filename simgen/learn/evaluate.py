@@ -43,7 +43,7 @@ from simgen.learn.garment_model import (FIT_DIR, WRINKLE_DIR, GarmentModel, Stre
                                         load_split)
 
 __all__ = ["THESIS", "METHODS", "METHOD_LABELS", "evaluate_garment", "time_inference", "format_summary",
-           "triangle_strain", "METRICS_FILE"]
+           "triangle_strain", "physics_terms", "METRICS_FILE"]
 
 METRICS_FILE = "metrics.json"
 
@@ -147,7 +147,7 @@ def _inside_fraction(points: dict[str, np.ndarray], body_vertices: np.ndarray, f
 
 
 # ------------------------------------------------------------------------------------ physics
-def _physics_terms(data: GarmentData, runs: list[dict], body, device) -> dict:
+def physics_terms(data: GarmentData, runs: list[dict], body, device) -> dict:
     """Mean SNUG terms per frame [J] of the simulation and the predictions (``simgen.physics``).
 
     runs: [{"fps", "body_vertices" (T, Vb, 3), "sets": {name: positions (T, V, 3)}}]. The rest shape
@@ -404,7 +404,7 @@ def evaluate_garment(model_dir: str | Path, data: GarmentData, out_dir: str | Pa
         try:
             from simgen.learn.data import body_for_identity
 
-            metrics["physics"] = _physics_terms(data, physics_runs, body_for_identity(data.identity, body), dev) \
+            metrics["physics"] = physics_terms(data, physics_runs, body_for_identity(data.identity, body), dev) \
                 if physics_runs else {"skipped": "no held-out-motion sequence"}
         except ImportError as exc:
             metrics["physics"] = {"skipped": f"simgen.physics is not available ({exc})"}

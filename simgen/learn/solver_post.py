@@ -95,6 +95,7 @@ class SolverPostProcess:
         self._rest_inverse = triangle_rest_inverse(self.rest, self.faces)
         # [s] spent in calls; frames done, stepped again, left raw
         self.seconds, self.frames, self.retried, self.diverged = 0.0, 0, 0, 0
+        self._counts = {"substeps": 0, "retries": 0, "newton_iterations": 0, "cg_iterations": 0}  # the solver's
 
     @classmethod
     def from_data(cls, data, body, **kw) -> SolverPostProcess:
@@ -133,10 +134,16 @@ class SolverPostProcess:
     def report(self) -> dict:
         """Its settings and cost so far: substeps, dt [s], chunk, seconds, frames, ms_per_frame
         (frames stepped ``chunk`` at a time, retries included), retried_frames (failed once, stepped
-        again at half the substep), diverged_frames (failed twice, left raw)."""
+        again at half the substep), diverged_frames (failed twice, left raw), and the solver's
+        counters over its batched substeps: newton_per_substep, cg_per_substep (PCG iterations of
+        the chunk's slowest instance, summed over its Newton iterations) and guard_retries (the
+        half-step splits of whole chunks)."""
+        c, n = self._counts, max(self._counts["substeps"], 1)
         return {"substeps": self.substeps, "dt": self.dt, "chunk": self.chunk, "seconds": round(self.seconds, 3),
                 "frames": self.frames, "ms_per_frame": 1e3 * self.seconds / max(self.frames, 1),
-                "retried_frames": self.retried, "diverged_frames": self.diverged}
+                "retried_frames": self.retried, "diverged_frames": self.diverged,
+                "newton_per_substep": c["newton_iterations"] / n, "cg_per_substep": c["cg_iterations"] / n,
+                "guard_retries": c["retries"]}
 
     def _chunk(self, x: np.ndarray, body: np.ndarray) -> np.ndarray:
         """At most ``chunk`` frames [m] (n, V, 3) float32 on bodies (n, Vb, 3) -> (n, V, 3): stepped,
@@ -181,6 +188,10 @@ class SolverPostProcess:
             solver.step(state, state, collider, dt * substeps, substeps=substeps)
         except SolverDivergedError:
             return x.copy(), np.ones(n, dtype=bool)
+        finally:
+            stats = solver.stats
+            for key in self._counts:
+                self._counts[key] += int(stats[key])
         out = state.positions.numpy().reshape((size,) + x.shape[1:])[:n]
         return out, self._failed(x, out, solver.instance_stats["unresolved"][:n] > 0)
 

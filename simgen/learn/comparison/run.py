@@ -6,7 +6,7 @@ and measured the same way (no collision post-process on any method):
 
 - vertex error [cm] per frame and the share of garment vertices inside the body (:mod:`.metrics`);
 - the mean-curvature error [1/m] per frame against the simulation;
-- the physics terms [J per frame] of :func:`simgen.learn.evaluate._physics_terms` (the store's own
+- the physics terms [J per frame] of :func:`simgen.learn.evaluate.physics_terms` (the store's own
   material and contact parameters, the solver's rest shape);
 - inference time per frame (:func:`simgen.learn.evaluate.time_inference`, with warm-up), model
   size, training time (log.csv) and data-generation time (the store's metadata).
@@ -233,7 +233,7 @@ class _StageClock:
 def _measure(data, split, groups, contestants, body_model, dev, inside_stride: int, progress) -> dict:
     """Per-sequence and aggregated metrics (the results dict without timing and costs), plus "_clips"."""
     from simgen.body.torch_lbs import TorchBody
-    from simgen.learn.evaluate import _physics_terms
+    from simgen.learn.evaluate import physics_terms
 
     tb = TorchBody(body_model, device=dev)
     solver = dict(data.attrs.get("solver") or {})
@@ -279,7 +279,7 @@ def _measure(data, split, groups, contestants, body_model, dev, inside_stride: i
             row["_inside"] = inside
             row["inside_percent"] = {k: 100.0 * float(np.mean(v)) for k, v in inside.items()}
             clock.lap("inside")
-            phys = _physics_terms(data, [{"fps": s.fps, "body_vertices": bv_np,
+            phys = physics_terms(data, [{"fps": s.fps, "body_vertices": bv_np,
                                           "sets": {SIMULATION: gt, **preds}}], body_model, dev)
             clock.lap("physics")
             if "skipped" not in phys:
