@@ -93,9 +93,9 @@ class SolverPostProcess:
         self.substeps, self.chunk, self.device = int(substeps), int(chunk), str(device)
         self._solvers: dict = {}     # instances -> (ClothModel, ImplicitSolver)
         self._rest_inverse = triangle_rest_inverse(self.rest, self.faces)
-        # [s] spent in calls; frames done, stepped again, left raw
-        self.seconds, self.frames, self.retried, self.diverged = 0.0, 0, 0, 0
-        self._counts = {"substeps": 0, "retries": 0, "newton_iterations": 0, "cg_iterations": 0}  # the solver's
+        # the solver's counters, and [s] spent in its steps
+        self._counts = {"substeps": 0, "retries": 0, "newton_iterations": 0, "cg_iterations": 0, "step_seconds": 0.0}
+        self.reset_counters()   # seconds [s] spent in calls; frames done, stepped again, left raw
 
     @classmethod
     def from_data(cls, data, body, **kw) -> SolverPostProcess:
@@ -131,19 +131,24 @@ class SolverPostProcess:
         self.frames += len(x)
         return torch.from_numpy(out).to(device=points.device, dtype=points.dtype)
 
+    def reset_counters(self) -> None:
+        """Zero what :meth:`report` counts (the solvers built so far stay)."""
+        self.seconds, self.frames, self.retried, self.diverged = 0.0, 0, 0, 0
+        self._counts = dict.fromkeys(self._counts, 0)
+
     def report(self) -> dict:
         """Its settings and cost so far: substeps, dt [s], chunk, seconds, frames, ms_per_frame
         (frames stepped ``chunk`` at a time, retries included), retried_frames (failed once, stepped
         again at half the substep), diverged_frames (failed twice, left raw), and the solver's
         counters over its batched substeps: newton_per_substep, cg_per_substep (PCG iterations of
-        the chunk's slowest instance, summed over its Newton iterations) and guard_retries (the
-        half-step splits of whole chunks)."""
+        the chunk's slowest instance, summed over its Newton iterations), guard_retries (the
+        half-step splits of whole chunks) and step_ms_per_frame (the solver's steps alone)."""
         c, n = self._counts, max(self._counts["substeps"], 1)
         return {"substeps": self.substeps, "dt": self.dt, "chunk": self.chunk, "seconds": round(self.seconds, 3),
                 "frames": self.frames, "ms_per_frame": 1e3 * self.seconds / max(self.frames, 1),
                 "retried_frames": self.retried, "diverged_frames": self.diverged,
                 "newton_per_substep": c["newton_iterations"] / n, "cg_per_substep": c["cg_iterations"] / n,
-                "guard_retries": c["retries"]}
+                "guard_retries": c["retries"], "step_ms_per_frame": 1e3 * c["step_seconds"] / max(self.frames, 1)}
 
     def _chunk(self, x: np.ndarray, body: np.ndarray) -> np.ndarray:
         """At most ``chunk`` frames [m] (n, V, 3) float32 on bodies (n, Vb, 3) -> (n, V, 3): stepped,
@@ -184,15 +189,17 @@ class SolverPostProcess:
         state.positions.assign(x[pad].reshape(-1, 3))
         state.velocities.zero_()
         collider = BodyCollider(body[pad], self.body_faces, part_masks=self.body_part_masks, device=self.device)
+        t0 = time.perf_counter()
         try:
             solver.step(state, state, collider, dt * substeps, substeps=substeps)
         except SolverDivergedError:
             return x.copy(), np.ones(n, dtype=bool)
         finally:
             stats = solver.stats
-            for key in self._counts:
+            for key in ("substeps", "retries", "newton_iterations", "cg_iterations"):
                 self._counts[key] += int(stats[key])
         out = state.positions.numpy().reshape((size,) + x.shape[1:])[:n]
+        self._counts["step_seconds"] += time.perf_counter() - t0
         return out, self._failed(x, out, solver.instance_stats["unresolved"][:n] > 0)
 
     def _solver(self, n: int):
