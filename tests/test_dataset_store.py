@@ -972,6 +972,30 @@ def test_spec_mismatch_and_lock(tiny, tmp_path):
         generate_dataset(micro(shapes=["zero"]), out=str(store))
 
 
+def test_a_store_made_under_another_default_is_not_resumed(tmp_path):
+    """The content key holds only what the spec sets; a store whose solver settings or material
+    resolved otherwise (a default changed since: the guard's energy test, a measured material) is
+    refused by name instead of being finished with other physics."""
+    import zarr
+
+    store = tmp_path / "s"
+    generate_dataset(micro(shapes=["zero"]), out=str(store), max_sequences=0)
+    generate_dataset(micro(shapes=["zero"]), out=str(store), max_sequences=0)     # same physics: resumes
+    root = zarr.open_group(str(store), mode="r+")
+    solver, material = dict(root.attrs["solver"]), dict(root.attrs["material"])
+    flipped = not solver["config"]["guard_energy"]
+    root.attrs["solver"] = {**solver, "config": {**solver["config"], "guard_energy": flipped}}
+    with pytest.raises(InputError, match=f"solver setting 'guard_energy' = {flipped} there, {not flipped} now"):
+        generate_dataset(micro(shapes=["zero"]), out=str(store), max_sequences=0)
+    root.attrs["solver"] = solver
+    key = next(k for k, v in material.items() if isinstance(v, float) and v > 0)
+    root.attrs["material"] = {**material, key: 2.0 * material[key]}
+    with pytest.raises(InputError, match=f"material field '{key}'"):
+        generate_dataset(micro(shapes=["zero"]), out=str(store), max_sequences=0)
+    root.attrs["material"] = material
+    generate_dataset(micro(shapes=["zero"]), out=str(store), max_sequences=0)
+
+
 def test_info_and_export(tiny, tmp_path):
     from typer.testing import CliRunner
 

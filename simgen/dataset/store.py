@@ -91,7 +91,9 @@ class DatasetStore:
         """Create the store, or open an existing one made with the same content key.
 
         root_attrs must hold 'content_key' and 'content_hash'; they are compared with the stored
-        ones (a mismatch raises InputError naming the first differing field). Takes the lock.
+        ones (a mismatch raises InputError naming the first differing field), and so are the solver
+        settings and material as resolved (``solver.config``, ``material``), which also hold the
+        defaults that the key leaves out: a store is never resumed with other physics. Takes the lock.
         """
         import zarr
 
@@ -110,6 +112,10 @@ class DatasetStore:
                 diff = next((k for k in sorted(set(old) | set(new)) if old.get(k) != new.get(k)), "?")
                 raise InputError(f"the store {loc.root} was made with a different spec (field {diff!r}: "
                                  f"{old.get(diff)!r} there, {new.get(diff)!r} now); use another --out")
+            changed = _resolved_change(existing, root_attrs)
+            if changed is not None:
+                raise InputError(f"the store {loc.root} was simulated with {changed} (a default that the spec "
+                                 f"leaves implicit has changed since); use another --out")
             if existing.get("format_version") != FORMAT_VERSION:
                 raise InputError(f"the store {loc.root} has format version {existing.get('format_version')}, "
                                  f"this simgen writes {FORMAT_VERSION}")
@@ -268,3 +274,20 @@ def _alive(pid: int) -> bool:
             return fh.read().split(")")[-1].split()[0] != "Z"
     except OSError:
         return True
+
+
+def _resolved_change(existing: dict, root_attrs: dict) -> str | None:
+    """The first solver setting or material field that resolves differently in ``root_attrs`` than
+    in a store's ``existing`` attributes, as "solver setting 'x' = A there, B now"; None when they
+    agree or either side lacks them (a store from before they were written, a soft-tissue store)."""
+    pairs = (("solver setting", (existing.get("solver") or {}).get("config"),
+              (root_attrs.get("solver") or {}).get("config")),
+             ("material field", existing.get("material"), root_attrs.get("material")))
+    for label, old, new in pairs:
+        if old is None or new is None:
+            continue
+        old, new = (json.loads(json.dumps(d, default=float)) for d in (old, new))
+        for key in sorted(set(old) | set(new)):
+            if old.get(key) != new.get(key):
+                return f"{label} {key!r} = {old.get(key)!r} there, {new.get(key)!r} now"
+    return None
