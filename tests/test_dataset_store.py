@@ -573,9 +573,13 @@ def test_a_retry_joins_its_pool_while_the_waiting_work_outlasts_it(tmp_path, mon
     assert ds.manifest["failed"] == {} and check_dataset(tmp_path / "s").passed
 
 
-def test_the_drain_report_counts_the_jobs_taken_as_the_feed_ran_dry(tmp_path):
+def test_the_drain_report_counts_the_jobs_taken_as_the_feed_ran_dry(tmp_path, monkeypatch):
     """Two slots, sequences of 4 cloth-frames: the take that empties the feed gets one job for two
-    free slots, and that fresh job (all 4 frames left) is the work in flight the pool drains."""
+    free slots, and that fresh job (all 4 frames left) is the work in flight the pool drains. The
+    timeline, here of every frame, counts each slot-frame the pool stepped once."""
+    from simgen.dataset import execute
+
+    monkeypatch.setattr(execute, "TIMELINE_EVERY", 1)
     spec = micro(library=["walk_fast", "jumping_jacks"], batch_size=2)
     (rep,) = generate_dataset(spec, out=str(tmp_path / "s"))
     assert rep.written == 4 and spec.protocol_frames() + spec.max_frames - 1 == 4
@@ -583,6 +587,9 @@ def test_the_drain_report_counts_the_jobs_taken_as_the_feed_ran_dry(tmp_path):
     assert task["slots"] == 2 and task["ready"] <= task["dry"] <= task["end"]
     drain = {k: v for k, v in task["drain"].items() if k != "frame_s"}
     assert drain == {"jobs": 1, "frames_left_max": 4, "frames_left_sum": 4, "queued_frames": 0}
+    times, busy, walls, steps, retries = zip(*task["timeline"])
+    assert sum(busy) == task["cloth_frames"] and set(busy) <= {1, 2} and list(times) == sorted(times)
+    assert all(w >= s >= 0 for w, s in zip(walls, steps)) and set(retries) == {0}
 
 
 class _TwoWorkers:

@@ -465,6 +465,10 @@ class _Writes:
                     executor.shutdown(wait=True)
 
 
+#: Pool frames between two entries of a pool task's ``timeline`` (about 80 for the thesis-tshirt store).
+TIMELINE_EVERY = 10
+
+
 def run_pool_task(task: BatchTask, *, progress=None, on_outcome=None, deadline: float | None = None) -> dict:
     """Simulate a task's jobs in one :class:`simgen.sim.SimulationPool` (:func:`pool_slots` slots, at
     most the task's share) (continuous batching: a slot whose job ended takes the next at the next
@@ -488,7 +492,8 @@ def run_pool_task(task: BatchTask, *, progress=None, on_outcome=None, deadline: 
     first jobs taken from the feed), ready (pool built), dry (a freed slot first found no job left)
     and end; drain (once dry): the jobs then running, the most and the sum of their pool frames
     left, the pool frames of the jobs still queued in the pool (those no slot could take), and its
-    recent frame time [s]. A store write failure stops the
+    recent frame time [s]; timeline: every ``TIMELINE_EVERY``-th pool frame, [seconds since start,
+    busy slots, frame wall [s], its stepping [s], its solver retries]. A store write failure stops the
     task: ``error`` is one sentence (the store stays consistent; what was committed is kept).
     """
     from simgen.sim import SimulationJob, SimulationPool
@@ -519,7 +524,8 @@ def run_pool_task(task: BatchTask, *, progress=None, on_outcome=None, deadline: 
     source = _Source(feed, task.name, loc, reused)
     report = {"outcomes": outcomes, "error": None, "not_done": [], "abandoned_cloth_frames": 0, "slots": 0,
               "wall": 0.0, "cloth_frames": 0, "step_s": 0.0, "write_s": 0.0, "write_wait": 0.0,
-              "clock": clock, "gpu_memory_high_bytes": None, "retry_cloth_frames": 0, "retry_wall": 0.0}
+              "clock": clock, "gpu_memory_high_bytes": None, "retry_cloth_frames": 0, "retry_wall": 0.0,
+              "timeline": []}
     first = source.take(min(pool_slots(spec, config.device, garment), max(len(task.jobs), 1)))
     clock["fed"] = time.time()
     if not first:
@@ -570,6 +576,10 @@ def run_pool_task(task: BatchTask, *, progress=None, on_outcome=None, deadline: 
                 res = _injected_divergence(job, res)
                 retries.ended(job, res)
                 writes.submit(job, res)
+            if pool.frames_run % TIMELINE_EVERY == 0:
+                f = pool.last_frame
+                report["timeline"].append([round(time.time() - clock["start"], 2), f["busy"], round(f["wall"], 4),
+                                           round(f["step"], 4), f["retries"]])
             writes.collect()
             if progress is not None:
                 progress(pool.cloth_frames)

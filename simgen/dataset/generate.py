@@ -502,7 +502,7 @@ class _Driver:
                 "submitted": self.submitted.get(task.name), **since, "cloth_frames": r["cloth_frames"],
                 "retry_cloth_frames": r["retry_cloth_frames"], "retry_wall": r["retry_wall"],
                 "slots": r["slots"], "gpu_memory_high_bytes": r["gpu_memory_high_bytes"],
-                **({"drain": r["drain"]} if "drain" in r else {})}
+                **({"drain": r["drain"]} if "drain" in r else {}), "timeline": r.get("timeline", [])}
 
     def record(self, o: dict) -> None:
         """Enter one outcome into the manifest and the report; a failed job with attempts left runs

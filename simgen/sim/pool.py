@@ -104,6 +104,7 @@ class SimulationPool:
         self.frames_run = 0          # frames stepped
         self.cloth_frames = 0        # job frames stepped (a job at k times the substeps: one per k pool frames)
         self.step_time = 0.0         # [s] the solver's stepping summed over frames
+        self.last_frame: dict = {}   # the last step(): busy slots, wall and stepping [s], solver retries
         self.wall = 0.0              # [s] wall time of step() summed
 
     # -- queue --------------------------------------------------------------------------------------
@@ -237,6 +238,8 @@ class SimulationPool:
         wall = time.perf_counter() - t_frame
         for run in self._running.values():
             run.recorder.share += wall / len(self._running)
+        self.last_frame = {"busy": len(self._running), "wall": wall, "step": runner.step_time,
+                           "retries": s.solver.host_counts()["retries"]}
         self.frames_run += 1
         if self.frames_run > 2:      # the first frames load kernels and capture CUDA graphs
             self._recent.append(wall)
