@@ -27,10 +27,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _record import commit  # noqa: E402
 
 
-def held_out(data, split, count: int) -> list[str]:
-    """``count`` sequence ids of the split's first test group, spread over its motions and shapes."""
+def held_out(available, split, count: int) -> list[str]:
+    """``count`` of the ``available`` sequence ids in the split's first test group, spread over its
+    motions and shapes."""
     group = next(iter(split.test.values()))
-    ids = sorted(i for i in group if i in data.sequences)
+    ids = sorted(set(group) & set(available))
     if not ids:
         raise SystemExit("the store holds none of the model's held-out sequences")
     picks = np.unique(np.linspace(0, len(ids) - 1, min(count, len(ids))).round().astype(int))
@@ -59,6 +60,7 @@ def main() -> int:
     ap.add_argument("--inside-stride", type=int, default=5)
     args = ap.parse_args()
 
+    from simgen.dataset import open_dataset
     from simgen.learn.data import body_for_identity, load_garment_data
     from simgen.learn.evaluate import physics_terms, triangle_strain
     from simgen.learn.evaluate import _cloth_rest
@@ -70,8 +72,7 @@ def main() -> int:
     split = load_split(args.model)
     if split is None:
         raise SystemExit(f"{args.model} holds no split.json")
-    data = load_garment_data(args.store, max_frames=args.frames)
-    ids = held_out(data, split, args.sequences)
+    ids = held_out(open_dataset(args.store).sequence_ids(), split, args.sequences)
     data = load_garment_data(args.store, sequence_ids=ids, max_frames=args.frames)
     identity = {"garment": dict(data.identity.get("garment", {})), "body": dict(data.identity.get("body", {}))}
     model = load_garment_model(args.model, identity=identity, device=dev)

@@ -27,9 +27,9 @@ from simgen.sim import SimulationFailure
 TINY_IDS = {f"{m}__{s}" for m in ("jumping_jacks", "walk_fast") for s in ("zero", "b1p2")}
 
 
-def micro(library=("walk_fast",), **over):
+def micro(library=("walk_fast",), solver: dict | None = None, **over):
     """tiny with one clip (``library``: its motions) of one frame and a 4-frame protocol: for tests
-    of the driver's logic."""
+    of the driver's logic; ``solver``: sub-tables of [solver] to set."""
     from simgen.dataset import parse_spec
     from simgen.dataset.spec import preset_path
 
@@ -39,6 +39,8 @@ def micro(library=("walk_fast",), **over):
     doc["name"] = "micro"
     doc["protocol"] = {"relax_frames": 0, "ramp_frames": 3, "rest_frames": 1}
     doc["motions"].update(library=list(library), max_frames=1)
+    for table, values in (solver or {}).items():
+        doc.setdefault("solver", {}).setdefault(table, {}).update(values)
     return parse_spec(doc, source="micro.toml").with_overrides(**over)
 
 
@@ -982,25 +984,30 @@ def test_spec_mismatch_and_lock(tiny, tmp_path):
 def test_a_store_made_under_another_default_is_not_resumed(tmp_path):
     """The content key holds only what the spec sets; a store whose solver settings or material
     resolved otherwise (a default changed since: the guard's energy test, a measured material) is
-    refused by name instead of being finished with other physics."""
+    refused by name instead of being finished with other physics. An unbounded friction load (null
+    in the store's attributes) resumes, and so does a store that lacks a setting added since."""
     import zarr
 
     store = tmp_path / "s"
-    generate_dataset(micro(shapes=["zero"]), out=str(store), max_sequences=0)
-    generate_dataset(micro(shapes=["zero"]), out=str(store), max_sequences=0)     # same physics: resumes
+    spec = micro(shapes=["zero"], solver={"friction": {"max_normal_load": float("inf")}})
+    generate_dataset(spec, out=str(store), max_sequences=0)
+    generate_dataset(spec, out=str(store), max_sequences=0)     # same physics: resumes
     root = zarr.open_group(str(store), mode="r+")
     solver, material = dict(root.attrs["solver"]), dict(root.attrs["material"])
-    flipped = not solver["config"]["guard_energy"]
-    root.attrs["solver"] = {**solver, "config": {**solver["config"], "guard_energy": flipped}}
-    with pytest.raises(InputError, match=f"solver setting 'guard_energy' = {flipped} there, {not flipped} now"):
-        generate_dataset(micro(shapes=["zero"]), out=str(store), max_sequences=0)
-    root.attrs["solver"] = solver
-    key = next(k for k, v in material.items() if isinstance(v, float) and v > 0)
-    root.attrs["material"] = {**material, key: 2.0 * material[key]}
-    with pytest.raises(InputError, match=f"material field '{key}'"):
-        generate_dataset(micro(shapes=["zero"]), out=str(store), max_sequences=0)
-    root.attrs["material"] = material
-    generate_dataset(micro(shapes=["zero"]), out=str(store), max_sequences=0)
+    config = solver["config"]
+    flipped = not config["guard_energy"]
+    changes = [({**config, "guard_energy": flipped}, material,
+                f"solver setting 'guard_energy' = {flipped} there, {not flipped} now"),
+               ({**config, "friction": {**config["friction"], "smoothing_velocity": 0.01}}, material,
+                "solver setting 'friction.smoothing_velocity'"),
+               (config, {**material, "area_density": 2.0 * material["area_density"]}, "material field 'area_density'")]
+    for changed_config, changed_material, message in changes:
+        root.attrs.update({"solver": {**solver, "config": changed_config}, "material": changed_material})
+        with pytest.raises(InputError, match=message):
+            generate_dataset(spec, out=str(store), max_sequences=0)
+    older = {k: v for k, v in config.items() if k != "guard_energy"}
+    root.attrs.update({"solver": {**solver, "config": older}, "material": {**material, "source": "another citation"}})
+    generate_dataset(spec, out=str(store), max_sequences=0)
 
 
 def test_info_and_export(tiny, tmp_path):

@@ -117,6 +117,39 @@ def test_frames_the_guard_cannot_resolve_are_stepped_again_then_left_raw():
     assert rep["retried_frames"] == 2 and rep["diverged_frames"] == 2 and rep["frames"] == 2
 
 
+def test_a_frame_that_diverges_or_is_not_finite_stays_raw_and_the_others_are_stepped(monkeypatch):
+    """Five sheets, one with a NaN and one whose instance the solver reports diverged (a stand-in
+    for a step that stays non-finite after the guard's retries; a real one is rare: the PCG leaves
+    a non-finite system's step at 0): those two come back as predicted and counted, and the three
+    others fall as backward Euler says, as they would alone, stepped again without the diverged one."""
+    from simgen.sim import ImplicitSolver, SolverDivergedError
+
+    step = ImplicitSolver.step
+
+    def diverging_step(self, state_in, state_out, body, dt, **kw):
+        x = state_in.positions.numpy().reshape(self.model.num_instances, -1, 3)
+        marked = np.flatnonzero(x[:, :, 0].mean(axis=1) > 5.0)        # the sheet placed at x = 10 m
+        if len(marked):
+            raise SolverDivergedError("diverged (test)", instances=marked)
+        return step(self, state_in, state_out, body, dt, **kw)
+
+    monkeypatch.setattr(ImplicitSolver, "step", diverging_step)
+    rest, faces = _sheet(5)
+    bv, bf = _sphere()
+    k = 2
+    post = _post(rest, faces, bf, k)
+    frames = np.stack([rest + [0.0, 1.0, 0.0], rest + [10.0, 1.0, 0.0], rest + [0.5, 1.2, 0.0],
+                       rest + [0.0, 1.0, 0.7], rest + [0.0, 1.5, 0.0]]).astype(np.float32)
+    frames[3, 4, 1] = np.nan
+    out = post(torch.tensor(frames), torch.tensor(np.stack([bv] * len(frames)))).numpy()
+    assert np.array_equal(out[1], frames[1]) and np.array_equal(out[3], frames[3], equal_nan=True)
+    drop = 9.81 * H * H * k * (k + 1) / 2
+    for i in (0, 2, 4):
+        assert np.abs(out[i] - frames[i] - [0.0, -drop, 0.0]).max() < 1e-2 * drop
+    rep = post.report()
+    assert rep["retried_frames"] == 1 and rep["diverged_frames"] == 2 and rep["frames"] == 5
+
+
 def test_the_solver_settings_come_back_from_a_stores_attributes():
     cfg = SolverConfig(newton_iterations=2, contact=ContactParams(stiffness=1.0e5), strain_limit=0.5,
                        guard_energy=False)

@@ -492,7 +492,7 @@ def run_pool_task(task: BatchTask, *, progress=None, on_outcome=None, deadline: 
     first jobs taken from the feed), ready (pool built), dry (a freed slot first found no job left)
     and end; drain (once dry): the jobs then running, the most and the sum of their pool frames
     left, the pool frames of the jobs still queued in the pool (those no slot could take), and its
-    recent frame time [s]; timeline: every ``TIMELINE_EVERY``-th pool frame, [seconds since start,
+    recent frame time [s]; timeline: every ``TIMELINE_EVERY``-th pool frame, [s since clock's start,
     busy slots, frame wall [s], its stepping [s], its solver retries]. A store write failure stops the
     task: ``error`` is one sentence (the store stays consistent; what was committed is kept).
     """
@@ -572,11 +572,12 @@ def run_pool_task(task: BatchTask, *, progress=None, on_outcome=None, deadline: 
                 top_up()
                 if writes.error is not None or not (pool.busy or pool.queued):
                     break
+            stepped = pool.frames_run
             for job, res in pool.step():
                 res = _injected_divergence(job, res)
                 retries.ended(job, res)
                 writes.submit(job, res)
-            if pool.frames_run % TIMELINE_EVERY == 0:
+            if pool.frames_run > stepped and pool.frames_run % TIMELINE_EVERY == 0:
                 f = pool.last_frame
                 report["timeline"].append([round(time.time() - clock["start"], 2), f["busy"], round(f["wall"], 4),
                                            round(f["step"], 4), f["retries"]])

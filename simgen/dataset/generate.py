@@ -89,7 +89,8 @@ class StoreReport:
     # time), slots, gpu_memory_high_bytes (Warp's pool at its fullest in the task's process
     # so far: a later task of the same process reports at least an earlier one's), [drain: the
     # work in flight when the pool found the feed dry: {jobs, frames_left_max, frames_left_sum,
-    # queued_frames, frame_s}]}.
+    # queued_frames, frame_s}], timeline (every 10th pool frame: [s from the run's start, busy
+    # slots, frame wall [s], its stepping [s], its solver retries])}.
     tasks: list = field(default_factory=list)
 
     @property
@@ -502,7 +503,8 @@ class _Driver:
                 "submitted": self.submitted.get(task.name), **since, "cloth_frames": r["cloth_frames"],
                 "retry_cloth_frames": r["retry_cloth_frames"], "retry_wall": r["retry_wall"],
                 "slots": r["slots"], "gpu_memory_high_bytes": r["gpu_memory_high_bytes"],
-                **({"drain": r["drain"]} if "drain" in r else {}), "timeline": r.get("timeline", [])}
+                **({"drain": r["drain"]} if "drain" in r else {}),
+                "timeline": [[round(t + since["start"], 2), *rest] for t, *rest in r.get("timeline", [])]}
 
     def record(self, o: dict) -> None:
         """Enter one outcome into the manifest and the report; a failed job with attempts left runs

@@ -112,13 +112,13 @@ class DatasetStore:
                 diff = next((k for k in sorted(set(old) | set(new)) if old.get(k) != new.get(k)), "?")
                 raise InputError(f"the store {loc.root} was made with a different spec (field {diff!r}: "
                                  f"{old.get(diff)!r} there, {new.get(diff)!r} now); use another --out")
+            if existing.get("format_version") != FORMAT_VERSION:
+                raise InputError(f"the store {loc.root} has format version {existing.get('format_version')}, "
+                                 f"this simgen writes {FORMAT_VERSION}")
             changed = _resolved_change(existing, root_attrs)
             if changed is not None:
                 raise InputError(f"the store {loc.root} was simulated with {changed} (a default that the spec "
                                  f"leaves implicit has changed since); use another --out")
-            if existing.get("format_version") != FORMAT_VERSION:
-                raise InputError(f"the store {loc.root} has format version {existing.get('format_version')}, "
-                                 f"this simgen writes {FORMAT_VERSION}")
         store = cls(loc, manifest or empty_manifest(), dict(root_attrs))
         fresh = existing is None or manifest is None
         if not fresh:
@@ -278,16 +278,26 @@ def _alive(pid: int) -> bool:
 
 def _resolved_change(existing: dict, root_attrs: dict) -> str | None:
     """The first solver setting or material field that resolves differently in ``root_attrs`` than
-    in a store's ``existing`` attributes, as "solver setting 'x' = A there, B now"; None when they
-    agree or either side lacks them (a store from before they were written, a soft-tissue store)."""
+    in a store's ``existing`` attributes, as "solver setting 'friction.mu' = A there, B now"; None
+    when they agree. Compared as stored (non-finite floats become null); settings the store does not
+    hold (added since it was made), the material's citation and stores without these attributes
+    (made before they were written, soft-tissue stores) are left out."""
+    from simgen.dataset.storage import _jsonable
+
+    def flat(d: dict, prefix: str = "") -> dict:
+        out = {}
+        for k, v in d.items():
+            out.update(flat(v, f"{prefix}{k}.") if isinstance(v, dict) else {f"{prefix}{k}": v})
+        return out
+
     pairs = (("solver setting", (existing.get("solver") or {}).get("config"),
               (root_attrs.get("solver") or {}).get("config")),
              ("material field", existing.get("material"), root_attrs.get("material")))
     for label, old, new in pairs:
         if old is None or new is None:
             continue
-        old, new = (json.loads(json.dumps(d, default=float)) for d in (old, new))
-        for key in sorted(set(old) | set(new)):
-            if old.get(key) != new.get(key):
-                return f"{label} {key!r} = {old.get(key)!r} there, {new.get(key)!r} now"
+        old, new = (flat(json.loads(json.dumps(_jsonable(d)))) for d in (old, new))
+        for key in sorted(old):
+            if key != "source" and key in new and old[key] != new[key]:
+                return f"{label} {key!r} = {old[key]!r} there, {new[key]!r} now"
     return None

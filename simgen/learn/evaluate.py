@@ -580,7 +580,8 @@ def format_summary(metrics: dict) -> str:
         lines.append("")
         lines.append(f"solver post-process: {sp['substeps']} substeps of {1e3 * sp['dt']:.2f} ms (simulated time) "
                      f"per frame; it took {sp['ms_per_frame']:.1f} ms per frame, {sp['chunk']} frames at a time; "
-                     f"{sp['diverged_frames']} frames diverged (left raw)")
+                     f"{sp.get('retried_frames', 0)} frames stepped again at half the substep, "
+                     f"{sp['diverged_frames']} left raw; {sp.get('cg_per_substep', 0):.0f} CG iterations per substep")
     size = metrics.get("size_mb") or {}
     if size:
         lines.append("")

@@ -36,13 +36,14 @@ import time
 import numpy as np
 import torch
 
-from simgen.dataset.quality import DEFAULT_MAX_STRAIN, triangle_rest_inverse, triangle_strain
+from simgen.dataset.quality import DEFAULT_MAX_STRAIN
 from simgen.errors import InputError
 
 __all__ = ["DEFAULT_SUBSTEPS", "SolverPostProcess", "solver_config_from_attrs"]
 
-#: Substeps per frame: on a held-out hop of the thesis-tshirt model (fit-only predictions) 3, 5, 10
-#: and 20 substeps of 1/300 s left 21x, 11x, 5x and about 2x the simulation's strain energy
+#: Substeps per frame: from fit-only predictions of the thesis-tshirt model (the hop and dance,
+#: CPU-simulated ground truth) 5, 10 and 20 substeps of 1/300 s left 6.8x, 3.4x and 1.7x the
+#: simulation's strain energy; with the wrinkle GRU on the held-out motions 20 left 0.53x
 #: (BENCHMARKS.md).
 DEFAULT_SUBSTEPS = 20
 
@@ -92,7 +93,6 @@ class SolverPostProcess:
         self.body_part_masks = np.asarray(body_part_masks, dtype=np.int32)
         self.substeps, self.chunk, self.device = int(substeps), int(chunk), str(device)
         self._solvers: dict = {}     # instances -> (ClothModel, ImplicitSolver)
-        self._rest_inverse = triangle_rest_inverse(self.rest, self.faces)
         # the solver's counters, and [s] spent in its steps
         self._counts = {"substeps": 0, "retries": 0, "newton_iterations": 0, "cg_iterations": 0, "step_seconds": 0.0}
         self.reset_counters()   # seconds [s] spent in calls; frames done, stepped again, left raw
@@ -139,7 +139,8 @@ class SolverPostProcess:
     def report(self) -> dict:
         """Its settings and cost so far: substeps, dt [s], chunk, seconds, frames, ms_per_frame
         (frames stepped ``chunk`` at a time, retries included), retried_frames (failed once, stepped
-        again at half the substep), diverged_frames (failed twice, left raw), and the solver's
+        again at half the substep), diverged_frames (left raw: failed twice, or a prediction that is
+        not finite), and the solver's
         counters over its batched substeps: newton_per_substep, cg_per_substep (PCG iterations of
         the chunk's slowest instance, summed over its Newton iterations), guard_retries (the
         half-step splits of whole chunks) and step_ms_per_frame (the solver's steps alone)."""
@@ -152,58 +153,75 @@ class SolverPostProcess:
 
     def _chunk(self, x: np.ndarray, body: np.ndarray) -> np.ndarray:
         """At most ``chunk`` frames [m] (n, V, 3) float32 on bodies (n, Vb, 3) -> (n, V, 3): stepped,
-        the failed frames stepped again at half the substep, those failing again left raw."""
-        out, failed = self._step(x, body, self.substeps, self.dt)
-        if failed.any():
-            self.retried += int(failed.sum())
-            again, still = self._step(x[failed], body[failed], 2 * self.substeps, 0.5 * self.dt)
-            again[still] = x[failed][still]
-            out[failed] = again
-            self.diverged += int(still.sum())
+        the failed frames stepped again at half the substep, those failing again (and predictions
+        that are not finite) left raw."""
+        out = x.copy()
+        finite = np.flatnonzero(np.isfinite(x).all(axis=(1, 2)))
+        failed = self._run(x, body, finite, out, self.substeps, self.dt)
+        self.retried += len(failed)
+        still = self._run(x, body, failed, out, 2 * self.substeps, 0.5 * self.dt)
+        out[still] = x[still]
+        self.diverged += len(still) + len(x) - len(finite)
         return out
 
-    def _failed(self, x: np.ndarray, out: np.ndarray, unresolved: np.ndarray) -> np.ndarray:
-        """(n,) bool: frames whose steps the guard left unresolved, that are not finite, or whose
-        largest triangle stretch passes both the check's limit and the prediction's own."""
-        finite = np.isfinite(out).all(axis=(1, 2))
-        over = np.zeros(len(out), dtype=bool)
-        strain = triangle_strain(np.where(finite[:, None, None], out, 0.0), self.faces, self._rest_inverse).max(1)
-        raw = triangle_strain(x, self.faces, self._rest_inverse).max(1)
-        over[finite] = (strain > np.maximum(DEFAULT_MAX_STRAIN, raw))[finite]
-        return unresolved | ~finite | over
+    def _run(self, x: np.ndarray, body: np.ndarray, frames: np.ndarray, out: np.ndarray, substeps: int,
+             dt: float) -> np.ndarray:
+        """Step ``frames`` (indices into x) and write those that pass into ``out``; return the indices
+        of those that failed. A step that diverges names its instances: they fail, and the others
+        are stepped again without them."""
+        failed: list[int] = []
+        while len(frames):
+            stepped, bad, diverged = self._step(x[frames], body[frames], substeps, dt)
+            if diverged is not None:
+                failed += frames[diverged].tolist()
+                frames = np.delete(frames, diverged)
+                continue
+            out[frames[~bad]] = stepped[~bad]
+            failed += frames[bad].tolist()
+            break
+        return np.array(sorted(failed), dtype=np.int64)
 
-    def _step(self, x: np.ndarray, body: np.ndarray, substeps: int, dt: float) -> tuple[np.ndarray, np.ndarray]:
+    def _step(self, x: np.ndarray, body: np.ndarray, substeps: int, dt: float):
         """n frames [m] (n, V, 3) float32 on bodies (n, Vb, 3), ``substeps`` substeps of ``dt`` [s]
-        -> (positions (n, V, 3), failed (n,) bool). The frames are padded with copies of the last to
-        a power of two (at least 8), so that a few model sizes serve every sequence length."""
+        -> (positions (n, V, 3), failed (n,) bool, None), or (None, None, the indices of the frames
+        whose instances diverged). A frame fails when the guard left it unresolved, it is not finite,
+        or its most stretched triangle passes both the check's limit and the prediction's own. The
+        frames are padded with copies of the last to a power of two (at least 8), so that a few model
+        sizes serve every sequence length."""
         from simgen.sim import BodyCollider, SolverDivergedError
 
         n = len(x)
         size = max(8, 1 << (n - 1).bit_length())
         pad = np.r_[np.arange(n), np.full(size - n, n - 1)]
-        model, solver = self._solver(size)
+        model, solver, stretch = self._solver(size)
         solver.reset_contacts()             # friction's lagged contacts were another chunk's
         solver.forget_steps(range(size))    # and so were the CG warm starts
         solver.reset_stats()
         state = model.state()
         state.positions.assign(x[pad].reshape(-1, 3))
         state.velocities.zero_()
+        raw = stretch(state.positions)[:n]
         collider = BodyCollider(body[pad], self.body_faces, part_masks=self.body_part_masks, device=self.device)
         t0 = time.perf_counter()
         try:
             solver.step(state, state, collider, dt * substeps, substeps=substeps)
-        except SolverDivergedError:
-            return x.copy(), np.ones(n, dtype=bool)
+        except SolverDivergedError as err:
+            hit = np.unique(np.minimum(np.asarray(err.instances, dtype=np.int64), n - 1))
+            return None, None, hit if len(hit) else np.arange(n)
         finally:
             stats = solver.stats
             for key in ("substeps", "retries", "newton_iterations", "cg_iterations"):
                 self._counts[key] += int(stats[key])
+            self._counts["step_seconds"] += time.perf_counter() - t0
         out = state.positions.numpy().reshape((size,) + x.shape[1:])[:n]
-        self._counts["step_seconds"] += time.perf_counter() - t0
-        return out, self._failed(x, out, solver.instance_stats["unresolved"][:n] > 0)
+        finite = np.isfinite(out).all(axis=(1, 2))
+        over = stretch(state.positions)[:n] > np.maximum(DEFAULT_MAX_STRAIN, raw)
+        return out, (solver.instance_stats["unresolved"][:n] > 0) | ~finite | over, None
 
     def _solver(self, n: int):
-        """The (ClothModel, ImplicitSolver) of n instances of the garment, built on first use."""
+        """(ClothModel, ImplicitSolver, stretch) of n instances of the garment, built on first use;
+        stretch(positions) -> (n,) each instance's largest triangle stretch - 1, on the device
+        (:data:`simgen.sim.frame_stats.triangle_stretch_max`, the dataset check's measure)."""
         if n not in self._solvers:
             from simgen.sim import ClothModelBuilder, ImplicitSolver
 
@@ -211,5 +229,32 @@ class SolverPostProcess:
             for _ in range(n):
                 builder.add_instance(self.rest, self.faces, self.material, body_part=self.home)
             model = builder.finalize(self.device)
-            self._solvers[n] = (model, ImplicitSolver(model, self.config))
+            self._solvers[n] = (model, ImplicitSolver(model, self.config), _Stretch(model))
         return self._solvers[n]
+
+
+class _Stretch:
+    """Each instance's largest triangle stretch - 1 of a model's positions, on its device."""
+
+    def __init__(self, model) -> None:
+        import warp as wp
+
+        self.model = model
+        dev, n = model.device, model.num_instances
+        self.measured = wp.ones(n, dtype=wp.int32, device=dev)
+        self.self_hit = wp.zeros(model.num_vertices, dtype=wp.int32, device=dev)   # every triangle counts
+        self.out = wp.zeros(n, dtype=wp.float32, device=dev)
+        self.out_regular = wp.zeros(n, dtype=wp.float32, device=dev)
+
+    def __call__(self, positions) -> np.ndarray:
+        import warp as wp
+
+        from simgen.sim.frame_stats import triangle_stretch_max
+
+        m = self.model
+        self.out.fill_(-1.0)
+        self.out_regular.fill_(-1.0)
+        wp.launch(triangle_stretch_max, dim=m.num_triangles, device=m.device,
+                  inputs=[positions, m.triangles, m.tri_inv_rest, m.tri_instance, self.measured, self.self_hit],
+                  outputs=[self.out, self.out_regular])
+        return self.out.numpy().astype(np.float64)
