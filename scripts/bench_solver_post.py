@@ -5,12 +5,13 @@ mean triangle strain, mean vertex error, vertices inside the body).
 
 The raw predictions (fit + wrinkle, no post-process) of ``--sequences`` held-out sequences (spread
 over the split's first test group), each cut to ``--frames`` frames, go through
-:class:`simgen.learn.solver_post.SolverPostProcess` once per ``--substeps`` value, each a fresh
+:class:`simgen.learn.solver_post.SolverPostProcess` once per ``--substeps`` value (all spanning
+``--duration``, by default the post-process's), each a fresh
 post-process with the store's material and solver settings, run once untimed (kernel builds, the
 solver of each chunk size) before the timed pass.
 
     python scripts/bench_solver_post.py --store simgen-thesis/dataset --model simgen-thesis/model_motion \\
-        --device cuda --substeps 5 10 20
+        --device cuda --substeps 2 5 10 20
 """
 
 from __future__ import annotations
@@ -53,7 +54,9 @@ def main() -> int:
     ap.add_argument("--store", type=Path, required=True, help="the dataset store the model was trained on")
     ap.add_argument("--model", type=Path, required=True, help="a trained model folder (template, fit, wrinkle)")
     ap.add_argument("--device", default="cuda")
-    ap.add_argument("--substeps", type=int, nargs="+", default=[5, 10, 20])
+    ap.add_argument("--substeps", type=int, nargs="+", default=[2, 5, 10, 20])
+    ap.add_argument("--duration", type=float, default=None,
+                    help="simulated time per frame [s] (default: the post-process's); the substeps share it")
     ap.add_argument("--chunk", type=int, default=128, help="frames stepped together")
     ap.add_argument("--sequences", type=int, default=8)
     ap.add_argument("--frames", type=int, default=120, help="frames per sequence (from the first)")
@@ -101,7 +104,8 @@ def main() -> int:
     rows = {"simulation": score("ground_truth", [r["gt"] for r in runs]),
             "raw": score("model_raw", [r["raw"].cpu().numpy() for r in runs])}
     for substeps in args.substeps:
-        post = SolverPostProcess.from_data(data, body, substeps=substeps, chunk=args.chunk, device=warp_device)
+        post = SolverPostProcess.from_data(data, body, substeps=substeps, chunk=args.chunk, device=warp_device,
+                                           **({} if args.duration is None else {"duration": args.duration}))
         for r in runs:       # untimed: kernel builds and the solver of every chunk size the runs need
             for s in range(0, len(r["raw"]), args.chunk):
                 post(r["raw"][s:s + args.chunk], r["body"][s:s + args.chunk])

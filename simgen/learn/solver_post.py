@@ -7,14 +7,23 @@ metric post-process (:class:`simgen.learn.relax.MetricRelax`) keeps stretch wher
 lay inside the torso is pushed out against the arm (BENCHMARKS.md). :class:`SolverPostProcess`
 hands each predicted frame to the simulation's own solver (:class:`simgen.sim.ImplicitSolver`, with
 the dataset's material and solver settings): the cloth starts at the prediction, at rest, on the
-frame's posed body (held still), and steps ``substeps`` substeps of the dataset's substep length.
+frame's posed body (held still), and steps ``substeps`` substeps of ``duration / substeps`` each
+(by default 5 of 1/75 s).
 The first substep, backward Euler from rest, minimises the cloth's energy plus the inertia term
 sum_v m_v |x_v - p_v|^2 / (2 h^2): a metric relaxation tied to the prediction p, with the
 membrane, bending and contact laws and the contact rules (penalty, projection, the body part rule,
 friction) the ground truth was made with. The later substeps carry on from there as a short
 simulation (their inertia term ties to x_k + h v_k), in which the strain the first one left
-relaxes and the pushed-out vertices settle. Gravity acts on the way (for 20 substeps of 1/300 s,
-1/15 s: a free hem would fall 2.3 cm; a supported one sags far less).
+relaxes and the pushed-out vertices settle. Gravity acts on the way (for the default 5 substeps over 1/15 s: a
+free hem would fall 2.6 cm; a supported one sags far less).
+
+The substeps are longer than the dataset's (1/300 s): a longer step ties the cloth less to the
+prediction and relaxes more strain per solve, and every solve here runs to the PCG's cap whatever
+its length. From fit-only predictions of the thesis-tshirt model (the hop and dance against
+CPU-simulated ground truth) 20 substeps of 1/300 s left 1.7x the simulation's strain energy for
+about 1,960 CG iterations per frame, 5 of 1/75 s 2.8x for 490 (2 of 1/30 s: 3.8x for 190; 5 of
+1/300 s: 6.8x), all at the same vertex error; a third Newton iteration per substep relaxes more
+but lets the cloth move further from the prediction (BENCHMARKS.md).
 
 Every frame is its own cloth instance on its own body; a call steps its frames ``chunk`` at a time,
 each chunk from a clean solver (no friction contacts or CG guesses carried over). A frame fails
@@ -39,13 +48,11 @@ import torch
 from simgen.dataset.quality import DEFAULT_MAX_STRAIN
 from simgen.errors import InputError
 
-__all__ = ["DEFAULT_SUBSTEPS", "SolverPostProcess", "solver_config_from_attrs"]
+__all__ = ["DEFAULT_DURATION", "DEFAULT_SUBSTEPS", "SolverPostProcess", "solver_config_from_attrs"]
 
-#: Substeps per frame: from fit-only predictions of the thesis-tshirt model (the hop and dance,
-#: CPU-simulated ground truth) 5, 10 and 20 substeps of 1/300 s left 6.8x, 3.4x and 1.7x the
-#: simulation's strain energy; with the wrinkle GRU on the held-out motions 20 left 0.53x
-#: (BENCHMARKS.md).
-DEFAULT_SUBSTEPS = 20
+#: Substeps per frame and the simulated time they span [s] (module doc).
+DEFAULT_SUBSTEPS = 5
+DEFAULT_DURATION = 1.0 / 15.0
 
 
 def solver_config_from_attrs(attrs: dict):
@@ -98,19 +105,20 @@ class SolverPostProcess:
         self.reset_counters()   # seconds [s] spent in calls; frames done, stepped again, left raw
 
     @classmethod
-    def from_data(cls, data, body, **kw) -> SolverPostProcess:
+    def from_data(cls, data, body, *, substeps: int = DEFAULT_SUBSTEPS, duration: float = DEFAULT_DURATION,
+                  **kw) -> SolverPostProcess:
         """The post-process of a :class:`simgen.learn.data.GarmentData` (its rest template,
-        material and the store's solver settings) on ``body`` (a BodyModel); InputError when the
-        data lacks them."""
+        material and the store's solver settings) on ``body`` (a BodyModel), ``substeps`` substeps
+        over ``duration`` [s] per frame; InputError when the data lacks them."""
         from simgen.body.parts import face_part_masks, face_parts, vertex_parts
 
         if data.rest_template is None or data.material is None:
             raise InputError("the dataset holds no solver rest template or material for the solver post-process")
-        config, dt = solver_config_from_attrs(data.attrs)
+        config, _ = solver_config_from_attrs(data.attrs)
         faces = np.asarray(body.faces)
         masks = face_part_masks(np.asarray(body.v_template), faces, face_parts(np.asarray(body.weights), faces))
-        return cls(data.rest_template, data.faces, vertex_parts(data.skin_weights), data.material, config, dt,
-                   faces, masks, **kw)
+        return cls(data.rest_template, data.faces, vertex_parts(data.skin_weights), data.material, config,
+                   duration / substeps, faces, masks, substeps=substeps, **kw)
 
     def __call__(self, points: torch.Tensor, body_vertices: torch.Tensor) -> torch.Tensor:
         """Predicted garments [m] (N, V, 3) on posed bodies [m] (N, Vb, 3) -> the garments after the
