@@ -12,6 +12,7 @@ import pytest
 import torch
 
 from simgen.cli import main
+from simgen.learn.solver_post import DEFAULT_SUBSTEPS
 
 
 def run(argv, capsys):
@@ -93,7 +94,7 @@ def test_train_eval_compare_through_the_cli(store, tmp_path, capsys):
     # cloth's metric kept closer than the metric post-process keeps it.
     assert group["inside_percent"]["model_solver"] <= group["inside_percent"]["model"]
     assert group["triangle_strain"]["model_solver"] < group["triangle_strain"]["model_relaxed"]
-    assert metrics["solver_postprocess"]["frames"] > 0 and "solver post-process: 20 substeps" in out
+    assert metrics["solver_postprocess"]["frames"] > 0 and f"solver post-process: {DEFAULT_SUBSTEPS} substeps" in out
     # Strain and the per-clip rows: every method and the simulation; the clips' frame-weighted
     # errors average back to the group's.
     assert set(group["triangle_strain"]) == {"ground_truth", *group["error_cm"]}
