@@ -278,10 +278,10 @@ def _alive(pid: int) -> bool:
 
 def _resolved_change(existing: dict, root_attrs: dict) -> str | None:
     """The first solver setting or material field that resolves differently in ``root_attrs`` than
-    in a store's ``existing`` attributes, as "solver setting 'friction.mu' = A there, B now"; None
-    when they agree. Compared as stored (non-finite floats become null); settings the store does not
-    hold (added since it was made), the material's citation and stores without these attributes
-    (made before they were written, soft-tissue stores) are left out."""
+    in a store's ``existing`` attributes, as "solver setting 'friction.max_normal_load' = A there, B
+    now"; None when they agree. Compared as stored (non-finite floats become null); settings the
+    store does not hold (added since it was made), the material's citation and stores without these
+    attributes (made before they were written, soft-tissue stores) are left out."""
     from simgen.dataset.storage import _jsonable
 
     def flat(d: dict, prefix: str = "") -> dict:

@@ -14,8 +14,8 @@ sum_v m_v |x_v - p_v|^2 / (2 h^2): a metric relaxation tied to the prediction p,
 membrane, bending and contact laws and the contact rules (penalty, projection, the body part rule,
 friction) the ground truth was made with. The later substeps carry on from there as a short
 simulation (their inertia term ties to x_k + h v_k), in which the strain the first one left
-relaxes and the pushed-out vertices settle. Gravity acts on the way (for the default 5 substeps over 1/15 s: a
-free hem would fall 2.6 cm; a supported one sags far less).
+relaxes and the pushed-out vertices settle. Gravity acts on the way (over the default 1/15 s a free
+hem would fall 2.6 cm; a supported one sags far less).
 
 The substeps are longer than the dataset's (1/300 s): a longer step ties the cloth less to the
 prediction and relaxes more strain per solve, and every solve here runs to the PCG's cap whatever
@@ -99,7 +99,7 @@ class SolverPostProcess:
         self.body_faces = np.asarray(body_faces, dtype=np.int64)
         self.body_part_masks = np.asarray(body_part_masks, dtype=np.int32)
         self.substeps, self.chunk, self.device = int(substeps), int(chunk), str(device)
-        self._solvers: dict = {}     # instances -> (ClothModel, ImplicitSolver)
+        self._solvers: dict = {}     # instances -> (ClothModel, ImplicitSolver, _Stretch)
         # the solver's counters, and [s] spent in its steps
         self._counts = {"substeps": 0, "retries": 0, "newton_iterations": 0, "cg_iterations": 0, "step_seconds": 0.0}
         self.reset_counters()   # seconds [s] spent in calls; frames done, stepped again, left raw
@@ -148,10 +148,10 @@ class SolverPostProcess:
         """Its settings and cost so far: substeps, dt [s], chunk, seconds, frames, ms_per_frame
         (frames stepped ``chunk`` at a time, retries included), retried_frames (failed once, stepped
         again at half the substep), diverged_frames (left raw: failed twice, or a prediction that is
-        not finite), and the solver's
-        counters over its batched substeps: newton_per_substep, cg_per_substep (PCG iterations of
-        the chunk's slowest instance, summed over its Newton iterations), guard_retries (the
-        half-step splits of whole chunks) and step_ms_per_frame (the solver's steps alone)."""
+        not finite), and the solver's counters over its batched substeps: newton_per_substep,
+        cg_per_substep (PCG iterations of the chunk's slowest instance, summed over its Newton
+        iterations), guard_retries (the half-step splits of whole chunks) and step_ms_per_frame
+        (the solver's steps alone)."""
         c, n = self._counts, max(self._counts["substeps"], 1)
         return {"substeps": self.substeps, "dt": self.dt, "chunk": self.chunk, "seconds": round(self.seconds, 3),
                 "frames": self.frames, "ms_per_frame": 1e3 * self.seconds / max(self.frames, 1),
