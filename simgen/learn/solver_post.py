@@ -101,7 +101,8 @@ class SolverPostProcess:
         self.substeps, self.chunk, self.device = int(substeps), int(chunk), str(device)
         self._solvers: dict = {}     # instances -> (ClothModel, ImplicitSolver, _Stretch)
         # the solver's counters, and [s] spent in its steps
-        self._counts = {"substeps": 0, "retries": 0, "newton_iterations": 0, "cg_iterations": 0, "step_seconds": 0.0}
+        self._counts = {"calls": 0, "substeps": 0, "retries": 0, "newton_iterations": 0, "cg_iterations": 0,
+                        "step_seconds": 0.0}
         self.reset_counters()   # seconds [s] spent in calls; frames done, stepped again, left raw
 
     @classmethod
@@ -148,15 +149,18 @@ class SolverPostProcess:
         """Its settings and cost so far: substeps, dt [s], chunk, seconds, frames, ms_per_frame
         (frames stepped ``chunk`` at a time, retries included), retried_frames (failed once, stepped
         again at half the substep), diverged_frames (left raw: failed twice, or a prediction that is
-        not finite), and the solver's counters over its batched substeps: newton_per_substep,
-        cg_per_substep (PCG iterations of the chunk's slowest instance, summed over its Newton
-        iterations), guard_retries (the half-step splits of whole chunks) and step_ms_per_frame
+        not finite), and the solver's counters: solver_calls (batched steps of a chunk or its
+        failed frames), substeps_attempted (guard retries included), newton_per_substep,
+        cg_iterations (those of each solve's slowest instance, summed: the batched work),
+        cg_per_substep, guard_retries (the half-step splits of whole chunks) and step_ms_per_frame
         (the solver's steps alone)."""
         c, n = self._counts, max(self._counts["substeps"], 1)
         return {"substeps": self.substeps, "dt": self.dt, "chunk": self.chunk, "seconds": round(self.seconds, 3),
                 "frames": self.frames, "ms_per_frame": 1e3 * self.seconds / max(self.frames, 1),
                 "retried_frames": self.retried, "diverged_frames": self.diverged,
-                "newton_per_substep": c["newton_iterations"] / n, "cg_per_substep": c["cg_iterations"] / n,
+                "solver_calls": c["calls"], "substeps_attempted": c["substeps"],
+                "newton_per_substep": c["newton_iterations"] / n, "cg_iterations": c["cg_iterations"],
+                "cg_per_substep": c["cg_iterations"] / n,
                 "guard_retries": c["retries"], "step_ms_per_frame": 1e3 * c["step_seconds"] / max(self.frames, 1)}
 
     def _chunk(self, x: np.ndarray, body: np.ndarray) -> np.ndarray:
@@ -217,6 +221,7 @@ class SolverPostProcess:
             hit = np.unique(np.minimum(np.asarray(err.instances, dtype=np.int64), n - 1))
             return None, None, hit if len(hit) else np.arange(n)
         finally:
+            self._counts["calls"] += 1
             stats = solver.stats
             for key in ("substeps", "retries", "newton_iterations", "cg_iterations"):
                 self._counts[key] += int(stats[key])
