@@ -18,12 +18,12 @@ relaxes and the pushed-out vertices settle. Gravity acts on the way (over the de
 hem would fall 2.6 cm; a supported one sags far less).
 
 The substeps are longer than the dataset's (1/300 s): a longer step ties the cloth less to the
-prediction and relaxes more strain per solve, and every solve here runs to the PCG's cap whatever
-its length. From fit-only predictions of the thesis-tshirt model (the hop and dance against
-CPU-simulated ground truth) 20 substeps of 1/300 s left 1.7x the simulation's strain energy for
-about 1,960 CG iterations per frame, 5 of 1/75 s 2.8x for 490 (2 of 1/30 s: 3.8x for 190; 5 of
-1/300 s: 6.8x), all at the same vertex error; a third Newton iteration per substep relaxes more
-but lets the cloth move further from the prediction (BENCHMARKS.md).
+prediction and relaxes more strain per solve (every solve here runs to the PCG's cap whatever its
+length), while the guard splits more of them. From fit-only predictions of the thesis-tshirt
+model (the hop and dance against CPU-simulated ground truth) 20 substeps of 1/300 s left 1.7x the
+simulation's strain energy, 5 of 1/75 s 2.8x for half the CG work (its guard's retries counted)
+and 10 of 1/300 s 3.4x for about the same work, all at the same vertex error; a third Newton
+iteration per substep relaxes more but moves the cloth off the prediction (BENCHMARKS.md).
 
 Every frame is its own cloth instance on its own body; a call steps its frames ``chunk`` at a time,
 each chunk from a clean solver (no friction contacts or CG guesses carried over). A frame fails
