@@ -1300,7 +1300,7 @@ def eval_garment_cmd(
                                       rich_help_panel=EXPERT),
     solver_pp: str = typer.Option("auto", "--solver-pp", rich_help_panel=EXPERT,
                                   help="Score the solver post-process too: on, off or auto (with a GPU; on the CPU "
-                                       "it takes seconds per frame)."),
+                                       "it takes about a second per frame)."),
     max_frames: Optional[int] = _T_MAXF, body: Optional[str] = _T_BODY,
 ) -> None:
     """Errors vs LBS and linear regression (Figs. 4.6, 4.7), collisions, timing and size vs Table 4.1."""

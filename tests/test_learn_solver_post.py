@@ -14,7 +14,7 @@ import trimesh
 
 from simgen.errors import InputError
 from simgen.learn.solver_post import SolverPostProcess, solver_config_from_attrs
-from simgen.params import ContactParams
+from simgen.params import ContactParams, FrictionParams
 from simgen.sim.config import SolverConfig
 
 H = 1.0 / 300.0
@@ -151,12 +151,15 @@ def test_a_frame_that_diverges_or_is_not_finite_stays_raw_and_the_others_are_ste
 
 
 def test_the_solver_settings_come_back_from_a_stores_attributes():
+    """As a store writes them: JSON, an unbounded friction load as null."""
+    from simgen.dataset.storage import _jsonable
+
     cfg = SolverConfig(newton_iterations=2, contact=ContactParams(stiffness=1.0e5), strain_limit=0.5,
-                       guard_energy=False)
+                       guard_energy=False, friction=FrictionParams(max_normal_load=float("inf")))
     attrs = {"solver": {"fps": 30.0, "substeps": 10, "dt": 1.0 / 300.0,
-                        "config": json.loads(json.dumps(asdict(cfg), default=float))}}
-    back, dt = solver_config_from_attrs(attrs)
-    assert back == cfg and dt == pytest.approx(1.0 / 300.0)
+                        "config": json.loads(json.dumps(_jsonable(asdict(cfg))))}}
+    assert attrs["solver"]["config"]["friction"]["max_normal_load"] is None
+    assert solver_config_from_attrs(attrs) == cfg
     with pytest.raises(InputError, match="no solver settings"):
         solver_config_from_attrs({"material": "cotton"})
 

@@ -86,10 +86,11 @@ def _identity(data: GarmentData) -> dict:
 # ------------------------------------------------------------------------------------ predictions
 @torch.no_grad()
 def _predict_all(model: GarmentModel, lrs: dict, betas, poses, trans, fps: float,
-                 solver_post=None) -> dict[str, torch.Tensor]:
+                 solver_post=None, body_vertices=None) -> dict[str, torch.Tensor]:
     """Every method's garment [m] (T, V, 3) for one sequence, plus 'moved' (T, V) of the post-process
     (the thesis's; "model_relaxed" is the metric post-process of the same raw prediction and
-    "model_solver", with ``solver_post`` (a :class:`SolverPostProcess`), the solver's)."""
+    "model_solver", with ``solver_post`` (a :class:`SolverPostProcess`), the solver's on the posed
+    bodies ``body_vertices`` [m] (T, Vb, 3))."""
     dev = model.device
     b = torch.as_tensor(betas, dtype=torch.float32, device=dev)
     p = torch.as_tensor(poses, dtype=torch.float32, device=dev)
@@ -98,7 +99,7 @@ def _predict_all(model: GarmentModel, lrs: dict, betas, poses, trans, fps: float
     out = {"model": pred.vertices, "model_raw": pred.raw, "moved": pred.moved}
     out["model_relaxed"] = model.push_out_sequence(pred.raw, b, p, t, relax=True)[0]
     if solver_post is not None:
-        out["model_solver"] = solver_post(pred.raw, model.body(b, p, t)[0])
+        out["model_solver"] = solver_post(pred.raw, body_vertices)
     a = pred.transforms
     out["fit_only"] = lbs_baseline_fit(model, b, a)
     out["lbs"] = lbs_baseline(model.template, b, a)
@@ -310,7 +311,7 @@ def evaluate_garment(model_dir: str | Path, data: GarmentData, out_dir: str | Pa
     ``simgen.physics`` terms (0: none); max_sequences: at most this many sequences per test group
     (None: all); solver_postprocess: also score the solver post-process ("model_solver",
     :mod:`simgen.learn.solver_post`) where the data has the solver's settings (None: on a GPU only;
-    on the CPU it takes seconds per frame of a 4k-vertex garment); progress(done, total) per
+    on the CPU it takes about a second per frame of a 4k-vertex garment); progress(done, total) per
     sequence. Returns the metrics dict.
     """
     dev = torch.device(device)
@@ -343,7 +344,9 @@ def evaluate_garment(model_dir: str | Path, data: GarmentData, out_dir: str | Pa
     for group, ids in groups.items():
         for sid in ids:
             s = data.sequences[sid]
-            preds = _predict_all(model, lrs, s.betas, s.poses, s.trans, s.fps, solver_post=solver_post)
+            body_all = body_model(*(torch.as_tensor(a, device=dev) for a in (s.betas, s.poses, s.trans)))[0]
+            preds = _predict_all(model, lrs, s.betas, s.poses, s.trans, s.fps, solver_post=solver_post,
+                                 body_vertices=body_all)
             gt = torch.as_tensor(s.vertices, device=dev)
             errs = {m: _vertex_error_cm(preds[m], gt) for m in methods}
             moved = float(preds["moved"].float().mean()) if preds["moved"] is not None else 0.0
@@ -361,17 +364,14 @@ def evaluate_garment(model_dir: str | Path, data: GarmentData, out_dir: str | Pa
                 strain.setdefault(group, {}).setdefault(m, []).extend(frames_strain.tolist())
             # Vertices inside the body, every inside_stride-th frame.
             frames = list(range(0, s.num_frames, max(1, inside_stride)))
-            bv = body_model(torch.as_tensor(s.betas[frames], device=dev), torch.as_tensor(s.poses[frames], device=dev),
-                            torch.as_tensor(s.trans[frames], device=dev))[0].cpu().numpy()
+            bv = body_all[frames].cpu().numpy()
             for k, f in enumerate(frames):
                 sets = {"ground_truth": s.vertices[f], **{m: preds[m][f].cpu().numpy() for m in SET_LABELS
                                                            if m != "ground_truth" and m in preds}}
                 for m, frac in _inside_fraction(sets, bv[k], faces, warp_device).items():
                     inside.setdefault(group, {}).setdefault(m, []).append(frac)
             if group == "held_out_motion" and len(physics_runs) < physics_sequences:
-                bv_all = body_model(torch.as_tensor(s.betas, device=dev), torch.as_tensor(s.poses, device=dev),
-                                    torch.as_tensor(s.trans, device=dev))[0].cpu().numpy()
-                physics_runs.append({"fps": s.fps, "body_vertices": bv_all, "sets": {
+                physics_runs.append({"fps": s.fps, "body_vertices": body_all.cpu().numpy(), "sets": {
                     "ground_truth": s.vertices, **{m: preds[m].cpu().numpy() for m in SET_LABELS if m in preds}}})
             done += 1
             if progress is not None:
@@ -581,7 +581,8 @@ def format_summary(metrics: dict) -> str:
         lines.append(f"solver post-process: {sp['substeps']} substeps of {1e3 * sp['dt']:.2f} ms (simulated time) "
                      f"per frame; it took {sp['ms_per_frame']:.1f} ms per frame, {sp['chunk']} frames at a time; "
                      f"{sp.get('retried_frames', 0)} frames stepped again at half the substep, "
-                     f"{sp['diverged_frames']} left raw; {sp.get('cg_per_substep', 0):.0f} CG iterations per substep")
+                     f"{sp['diverged_frames']} left raw; {sp.get('cg_per_substep', 0):.0f} CG iterations per "
+                     f"substep")
     size = metrics.get("size_mb") or {}
     if size:
         lines.append("")

@@ -56,14 +56,17 @@ DEFAULT_DURATION = 1.0 / 15.0
 
 
 def solver_config_from_attrs(attrs: dict):
-    """(:class:`simgen.sim.SolverConfig`, substep length [s]) of a store's root attributes (its
-    ``solver`` entry, as :func:`simgen.dataset.generate_dataset` writes it); InputError if absent."""
+    """The :class:`simgen.sim.SolverConfig` of a store's root attributes (their ``solver`` entry, as
+    :func:`simgen.dataset.generate_dataset` writes it, non-finite floats as null); InputError if
+    absent."""
+    import dataclasses
+
     from simgen.dataset.spec import solver_settings
     from simgen.sim.config import SolverConfig
 
     entry = (attrs or {}).get("solver") or {}
-    if "config" not in entry or "dt" not in entry:
-        raise InputError("the dataset's attributes hold no solver settings ('solver' with 'config' and 'dt')")
+    if "config" not in entry:
+        raise InputError("the dataset's attributes hold no solver settings ('solver' with 'config')")
     settings = solver_settings()
     kwargs = {}
     for key, value in entry["config"].items():
@@ -71,9 +74,11 @@ def solver_config_from_attrs(attrs: dict):
             continue
         nested = settings[key].nested
         if nested is not None and isinstance(value, dict):
-            value = nested(**{k: tuple(v) if isinstance(v, list) else v for k, v in value.items()})
+            floats = {f.name for f in dataclasses.fields(nested) if isinstance(f.default, float)}
+            value = nested(**{k: float("inf") if v is None and k in floats else tuple(v) if isinstance(v, list) else v
+                              for k, v in value.items()})
         kwargs[key] = tuple(value) if isinstance(value, list) else value
-    return SolverConfig(**kwargs), float(entry["dt"])
+    return SolverConfig(**kwargs)
 
 
 class SolverPostProcess:
@@ -115,7 +120,7 @@ class SolverPostProcess:
 
         if data.rest_template is None or data.material is None:
             raise InputError("the dataset holds no solver rest template or material for the solver post-process")
-        config, _ = solver_config_from_attrs(data.attrs)
+        config = solver_config_from_attrs(data.attrs)
         faces = np.asarray(body.faces)
         masks = face_part_masks(np.asarray(body.v_template), faces, face_parts(np.asarray(body.weights), faces))
         return cls(data.rest_template, data.faces, vertex_parts(data.skin_weights), data.material, config,
