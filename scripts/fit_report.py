@@ -55,6 +55,7 @@ def variants() -> dict:
         "stiff_contact": ({}, {"contact": ContactParams(stiffness=1.0e5)}),
         "cotton": ({"material": "cotton"}, {}),
         "no_projection": ({}, {"project": False}),
+        "converged": ({}, {"newton_iterations": 3, "cg_iterations": 200, "cg_tolerance": 1.0e-5}),
         "preset": ({"material": "interlock"}, {"newton_iterations": 2, "strain_limit": 0.5, "constraint_rounds": 2,
                                                "contact": ContactParams(stiffness=1.0e5), "guard_energy": False}),
     }

@@ -31,6 +31,8 @@ Scene (one for all solvers):
   Frame 81 is the sway's neutral point: arms hanging (collars ~14 deg and shoulders ~44 deg turned
   from the rest pose, elbows bent 12 deg), pelvis level (0.1 deg), root translation
   (-0.001, -0.016, 0) m, neck and head each turned ~12 deg.
+- --motion NAME (e.g. ``walk``, the demo's) plays that clip instead of holding a pose, after the
+  same protocol: the same comparison in motion, where our T-shirt's hem clings (issue 21).
 - Garment: ``load_garment(--garment, body=body)``: template vertices on the T-pose body, moved with
   the body by the pose's root translation before the first frame, as ours does.
 - One body trajectory: :class:`BodyTrajectory` poses the body at the end of every substep with the
@@ -60,6 +62,8 @@ at the transition's end and at the end, with both face lists.
 
     python scripts/peer_drape.py --device cuda:0 --garment tshirt --frames 120 \\
         --solvers ours vbd style3d --variants default preset --out drape.json [--save-npz DIR]
+
+    python scripts/peer_drape.py --device cuda:0 --motion walk --frames 91 --solvers ours vbd style3d
 
 The Newton part needs ``import newton`` (1.8); ``--solvers ours`` runs without it (a CPU check:
 ``--device cpu --garment tshirt_1k --frames 12 --solvers ours``).
@@ -95,6 +99,16 @@ def newton_peer_module():
                          f"cannot be imported here ({exc}); run with --solvers ours or where Newton is "
                          f"installed.") from None
     return bench_newton_peer
+
+
+def played_clip(name: str, frames: int):
+    """The bundled or AMASS motion ``name`` played as it is (its own fps); it needs ``frames`` frames."""
+    from simgen.motion import load_motion
+
+    clip = load_motion(name)
+    if clip.num_frames < frames:
+        raise SystemExit(f"--motion {name} has {clip.num_frames} frames, fewer than --frames {frames}")
+    return clip
 
 
 def held_clip(pose_frame: int, frames: int, fps: float):
@@ -330,6 +344,7 @@ def parse_args(argv=None):
                    help="our solver's variants (scripts/fit_report.py)")
     p.add_argument("--betas", type=float, nargs="+", default=None, help="body shape (default: zeros)")
     p.add_argument("--pose-frame", type=int, default=DEFAULT_POSE_FRAME, help=f"frame of {MOTION} to hold")
+    p.add_argument("--motion", default=None, help="play this motion instead of holding a pose (e.g. walk)")
     p.add_argument("--fps", type=float, default=30.0)
     p.add_argument("--substeps", type=int, default=base.substeps)
     p.add_argument("--relax-frames", type=int, default=base.relax_frames)
@@ -358,7 +373,8 @@ def setup(args):
     body = load_body("open")
     garment = load_garment(args.garment, body=body)
     parts = fit_report.garment_parts(garment)
-    clip = held_clip(args.pose_frame, args.frames, args.fps)
+    clip = (held_clip(args.pose_frame, args.frames, args.fps) if args.motion is None
+            else played_clip(args.motion, args.frames))
     traj = BodyTrajectory(body, clip, args.betas or [], SimulationConfig(**protocol_settings(args)), args.frames,
                           args.device)
     x0 = (np.asarray(garment.vertices, dtype=np.float64) + traj.trans0).astype(np.float32)
@@ -366,7 +382,8 @@ def setup(args):
               "commit": fit_report.commit(), "warp": wp.__version__, "garment": args.garment,
               "garment_vertices": int(len(garment.vertices)), "hem_vertices": int(parts[0].sum()),
               "sleeve_vertices": int(parts[1].sum()), "body": "open", "body_vertices": int(body.num_vertices),
-              "betas": args.betas or [], "pose": {**clip.meta, "root_translation_m": traj.trans0.tolist()},
+              "betas": args.betas or [], "pose": ({**clip.meta, "root_translation_m": traj.trans0.tolist()} if args.motion is None
+                       else {"motion": args.motion, "fps": clip.fps, "root_translation_m": traj.trans0.tolist()}),
               "frames": args.frames, "stepped_frames": len(traj.steps), "transition_end_frame": traj.transition_end,
               **protocol_settings(args), "newton_iterations": args.iterations,
               "initial": fit_report.frame_metrics(x0, traj.start, traj.faces, *parts, args.device), "runs": []}

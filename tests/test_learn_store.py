@@ -173,3 +173,15 @@ def test_train_cli_validation_options_reach_the_split_and_the_run(store, tmp_pat
     code, _, err = run(["train", "wrinkle", "--dataset", str(store), "--out", str(tmp_path / "b"), "--epochs", "2",
                         "--hidden", "8", "--patience", "3"], capsys)
     assert code != 0 and "patience needs a split with validation motions" in err
+
+
+def test_summary_columns_stay_apart_for_a_diverged_clip():
+    """A per-clip strain of a diverged post-process (1.7e20) must not run into its neighbour's column."""
+    from simgen.learn.evaluate import format_summary
+
+    strain = {"ground_truth": 3.7e-4, "model": 0.0236, "model_relaxed": 0.00227, "model_solver": 1.6951e20}
+    metrics = {"groups": {"held_out_motion": {"error_cm": {}, "per_clip": {
+        "lunge": {"mean_error_cm": {"model": 1.286, "lbs": 3.233}, "triangle_strain": strain}}}}}
+    row = next(line for line in format_summary(metrics).splitlines() if line.startswith("lunge"))
+    assert [float(v) for v in row.split()[1:]] == pytest.approx([1.286, 3.233, 3.7e-4, 0.0236, 0.00227, 1.6951e20],
+                                                                rel=1e-3)

@@ -516,6 +516,13 @@ def _shape_motion(per_seq: dict, data: GarmentData, split, methods) -> dict:
 
 
 # ------------------------------------------------------------------------------------ text summary
+def _cell(value, width: int, digits: int) -> str:
+    """``value`` right-aligned in ``width`` characters with ``digits`` decimals, in exponent notation
+    where the fixed form would not leave a blank before it (a diverged run's 1e20 stays readable)."""
+    fixed = f"{value:{width}.{digits}f}"
+    return fixed if len(fixed) < width or fixed.startswith(" ") else f"{value:{width}.3e}"
+
+
 def format_summary(metrics: dict) -> str:
     """A plain-text table of the headline numbers beside the thesis's."""
     lines = []
@@ -539,7 +546,7 @@ def format_summary(metrics: dict) -> str:
         for m in ("ground_truth", *methods):
             label = "simulation (ground truth)" if m == "ground_truth" else METHOD_LABELS[m]
             lines.append(f"{label:40s}" + "".join(
-                f"{groups[g]['triangle_strain'].get(m, float('nan')):18.5f}" for g in names))
+                _cell(groups[g]['triangle_strain'].get(m, float('nan')), 18, 5) for g in names))
     clips = (groups.get("held_out_motion") or {}).get("per_clip") or {}
     if clips:
         lines.append("")
@@ -547,9 +554,9 @@ def format_summary(metrics: dict) -> str:
                      f"{'strain sim.':>14s}{'strain ours':>14s}{'ours, metric':>14s}{'ours, solver':>14s}")
         for motion, row in clips.items():
             err, st = row["mean_error_cm"], row["triangle_strain"]
-            lines.append(f"{motion:40s}{err['model']:14.3f}{err['lbs']:14.3f}{st['ground_truth']:14.5f}"
-                         f"{st['model']:14.5f}{st.get('model_relaxed', float('nan')):14.5f}"
-                         f"{st.get('model_solver', float('nan')):14.5f}")
+            lines.append(f"{motion:40s}{_cell(err['model'], 14, 3)}{_cell(err['lbs'], 14, 3)}" + "".join(
+                _cell(st.get(k, float("nan")), 14, 5) for k in ("ground_truth", "model", "model_relaxed",
+                                                                 "model_solver")))
     phys = metrics.get("physics") or {}
     rows = [m for m in SET_LABELS if isinstance(phys.get(m), dict)]
     if rows:
