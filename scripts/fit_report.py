@@ -11,7 +11,7 @@ material, and measures on every output frame (issue 21's targets):
 
 Prints one JSON line per variant and writes them all (device, commit, sizes) to --out.
 
-    python scripts/fit_report.py --device cuda:0 --frames 91 --variants default no_friction preset
+    python scripts/fit_report.py --device cuda:0 --frames 91 --variants default newton_1 preset
 """
 
 from __future__ import annotations
@@ -42,12 +42,33 @@ def commit() -> str:
         return "unknown"
 
 
+def preset_solver(preset: str = "thesis-tshirt") -> dict:
+    """The SolverConfig fields of a dataset preset that differ from the solver's defaults."""
+    from dataclasses import fields
+
+    from simgen.dataset import load_spec
+    from simgen.sim import SolverConfig
+
+    spec, base = load_spec(preset).solver_config().solver, SolverConfig()
+    return {f.name: getattr(spec, f.name) for f in fields(SolverConfig)
+            if getattr(spec, f.name) != getattr(base, f.name)}
+
+
 def variants() -> dict:
-    """Name -> (SimulationConfig overrides, SolverConfig overrides)."""
+    """Name -> (SimulationConfig overrides, SolverConfig overrides); each changes the solver's
+    defaults (three Newton iterations since 2026-11-29) or the thesis-tshirt preset's solver."""
     from simgen.params import ContactParams, FrictionParams
 
     return {
         "default": ({}, {}),
+        "newton_1": ({}, {"newton_iterations": 1}),
+        "newton_2": ({}, {"newton_iterations": 2}),
+        "converged": ({}, {"newton_iterations": 3, "cg_iterations": 200, "cg_tolerance": 1.0e-5}),
+        # One Newton iteration with more PCG work or no warm start (BENCHMARKS.md, 2026-11-29).
+        "newton_1_cg_200": ({}, {"newton_iterations": 1, "cg_iterations": 200}),
+        "newton_1_cg_tol_1e-5": ({}, {"newton_iterations": 1, "cg_tolerance": 1.0e-5}),
+        "newton_1_cg_200_tol_1e-5": ({}, {"newton_iterations": 1, "cg_iterations": 200, "cg_tolerance": 1.0e-5}),
+        "newton_1_no_warm_start": ({}, {"newton_iterations": 1, "cg_warm_start": False}),
         "no_friction": ({}, {"friction": None}),
         "friction_mu_0.1": ({"material_overrides": {"friction_coefficient": 0.1}}, {}),
         "friction_load_cap_2": ({}, {"friction": FrictionParams(max_normal_load=2.0)}),
@@ -55,9 +76,8 @@ def variants() -> dict:
         "stiff_contact": ({}, {"contact": ContactParams(stiffness=1.0e5)}),
         "cotton": ({"material": "cotton"}, {}),
         "no_projection": ({}, {"project": False}),
-        "converged": ({}, {"newton_iterations": 3, "cg_iterations": 200, "cg_tolerance": 1.0e-5}),
-        "preset": ({"material": "interlock"}, {"newton_iterations": 2, "strain_limit": 0.5, "constraint_rounds": 2,
-                                               "contact": ContactParams(stiffness=1.0e5), "guard_energy": False}),
+        "preset": ({"material": "interlock"}, preset_solver()),
+        "preset_newton_2": ({"material": "interlock"}, {**preset_solver(), "newton_iterations": 2}),
     }
 
 
@@ -144,7 +164,7 @@ def main(argv=None) -> int:
     p.add_argument("--garment", default="tshirt")
     p.add_argument("--motion", default="walk")
     p.add_argument("--frames", type=int, default=91)
-    p.add_argument("--variants", nargs="+", default=list(variants()), choices=list(variants()))
+    p.add_argument("--variants", nargs="+", default=["default", "newton_1", "preset"], choices=list(variants()))
     p.add_argument("--out", type=Path, default=None)
     args = p.parse_args(argv)
     rows = run(args)

@@ -33,7 +33,9 @@ def simulate_tangled(args) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     from simgen.sim import simulate
 
     cfg = load_spec(args.preset).solver_config()
-    cfg = replace(cfg, device=args.device, solver=replace(cfg.solver, self_contact=None),
+    solver = replace(cfg.solver, self_contact=None, **({} if args.newton_iterations is None
+                                                      else {"newton_iterations": args.newton_iterations}))
+    cfg = replace(cfg, device=args.device, solver=solver,
                   relax_frames=2, ramp_frames=5, rest_frames=2)
     body = body_pkg.load("open")
     clip = trim(load_motion(args.motion), args.start, args.start + args.frames / 30.0 + 0.5)
@@ -70,6 +72,7 @@ def main() -> None:
     p.add_argument("--start", type=float, default=1.0, help="clip start [s]")
     p.add_argument("--frames", type=int, default=60)
     p.add_argument("--preset", default="thesis-tshirt", help="dataset preset whose solver settings are used")
+    p.add_argument("--newton-iterations", type=int, default=None, help="instead of the preset's")
     p.add_argument("--device", default="cpu")
     p.add_argument("--out", help="also write the JSON to this file")
     args = p.parse_args()

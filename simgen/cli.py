@@ -657,8 +657,8 @@ def simulate(
         help="Solver steps per frame (SimulationConfig.substeps; the thesis: 10 at 30 fps, 3.33 ms)."),
     newton_iterations: Optional[int] = typer.Option(
         None, "--newton-iterations", rich_help_panel=EXPERT,
-        help="Newton iterations per substep (SolverConfig.newton_iterations; ARCSim: 1; 2 keeps fast limbs "
-             "from flicking single cloth vertices for a frame; each is one more assembly and solve)."),
+        help="Newton iterations per substep (SolverConfig.newton_iterations, 3; ARCSim: 1, which damps "
+             "the cloth's swing and lets hems cling; each is one more assembly and solve)."),
     strain_limit: Optional[float] = typer.Option(
         None, "--strain-limit", rich_help_panel=EXPERT,
         help="Largest principal stretch - 1 any triangle may keep after a substep (SolverConfig.strain_limit, "

@@ -134,7 +134,9 @@ def store(tmp_path_factory):
         "shapes": {"generator": "list", "list": [{"id": "zero", "betas": []}, {"id": "wide", "betas": [0.0, 2.0]}]},
         "motions": {"library": [], "files": ["rest_to_jacks.npz"], "max_frames": 9},
         "solver": {"device": "cpu"},
-        "protocol": {"relax_frames": 2, "ramp_frames": 3, "rest_frames": 3},
+        # A 6-frame ramp: over 3, the cloth on the wide shape still swings in the rest frames now that
+        # the solver's three Newton iterations no longer damp it (SolverConfig's doc).
+        "protocol": {"relax_frames": 2, "ramp_frames": 6, "rest_frames": 3},
     }, source="gt.toml", base_dir=tmp)
     generate_dataset(spec, out=str(tmp / "store"))
     return open_dataset(tmp / "store")
@@ -188,4 +190,5 @@ def test_wrinkles_small_at_rest_large_in_motion(store):
         w_motion = store.groundtruth(sid)["wrinkle"]
         rest_mean = np.mean(np.linalg.norm(w_rest, axis=2))
         motion_mean = np.mean(np.linalg.norm(w_motion[-3:], axis=2))
+        print(f"{sid}: wrinkle at rest {rest_mean * 1e3:.2f} mm, in motion {motion_mean * 1e3:.2f} mm")
         assert rest_mean < 0.3 * motion_mean, (sid, rest_mean, motion_mean)

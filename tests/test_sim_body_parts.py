@@ -115,6 +115,11 @@ def test_cloth_on_its_own_part_is_not_pushed_out_of_another_part():
             assert x_rule[0] == pytest.approx(x_plain[0])
 
 
+@pytest.mark.xfail(strict=True, reason=(
+    "with the default three Newton iterations (since 2026-11-29) the sweeping arm's leading side, "
+    "closest to cloth that is still outside it, pushes that cloth fully out of its way every substep "
+    "(the part rule acts only inside the body), so the patch is bulldozed 17 mm; with one or two "
+    "iterations the partial push let the arm overtake it (docs/sim.md, Limits)"))
 def test_limb_sweeping_through_the_torso_leaves_the_cloth_on_the_torso():
     """A 3 cm 'arm' sphere, half sunk into a 0.2 m 'torso' sphere (a body intersecting itself),
     sweeps 20 cm sideways at 1 m/s through a cloth patch lying on the torso. With part labels the

@@ -315,6 +315,38 @@ def test_hanging_strip_small_strain_without_poisson_is_within_half_a_percent():
     assert elongation == pytest.approx(analytic, rel=5e-3)
 
 
+# -- swing: the default Newton iterations against converged backward Euler -----------------------
+
+def _swing(config: SolverConfig, steps: int = 120, h: float = 1.0 / 300.0) -> float:
+    """A 15 cm interlock sheet hinged along one edge, released from horizontal: the height [m] its
+    mean vertex swings back up to after the first low point, measured from that low point."""
+    v, f = grid(9, 9, 0.15, 0.15, plane="xz", center=False)
+    model = ClothModel.from_mesh(v, f, "interlock", pinned=np.isclose(v[:, 0], 0.0), device=DEVICE,
+                                 dtype=wp.float32)
+    state, solver, heights = model.state(), ImplicitSolver(model, config), []
+    for _ in range(steps):
+        solver.step(state, state, None, h)
+        heights.append(float(state.positions.numpy()[:, 1].mean()))
+    heights = np.array(heights)
+    low = int(np.argmin(heights))
+    assert 0 < low < steps - 20, "the sheet must reach its low point and swing back within the run"
+    return float(heights[low:].max() - heights[low])
+
+
+def test_default_newton_iterations_swing_like_converged_backward_euler():
+    """Backward Euler dissipates a swing by itself; the default solve must not add to it. The
+    reference is the same step converged (10 Newton iterations, PCG to 1e-8). One linearised Newton
+    iteration (Baraff-Witkin's and ARCSim's step) swings back ~17% lower, which is what kept the
+    T-shirt's hem pressed onto the thighs in the walk (SolverConfig's doc)."""
+    converged = _swing(SolverConfig(newton_iterations=10, cg_iterations=300, cg_tolerance=1e-8, floor=None))
+    default = _swing(SolverConfig(floor=None))
+    one = _swing(SolverConfig(newton_iterations=1, floor=None))
+    print(f"swing back: converged {converged * 1e3:.2f} mm, default {default * 1e3:.2f} mm, "
+          f"one iteration {one * 1e3:.2f} mm")
+    assert default == pytest.approx(converged, rel=0.01)
+    assert one < 0.9 * converged
+
+
 # -- static relaxation ----------------------------------------------------------------------------
 
 def test_static_relaxation_gradient_vanishes_and_stays():
