@@ -65,15 +65,18 @@ def shape_batch(n: int, num_betas: int, seed: int = 0) -> np.ndarray:
     return b
 
 
-def solver_config(self_contact: bool, newton_iterations: int = 1):
+def solver_config(self_contact: bool, newton_iterations: int | None = None):
+    """The bench's SolverConfig; newton_iterations None: the solver's default."""
     from simgen.sim import SolverConfig
     from simgen.sim.energies import SelfContactParams
 
-    return SolverConfig(self_contact=SelfContactParams() if self_contact else None, newton_iterations=newton_iterations)
+    extra = {} if newton_iterations is None else {"newton_iterations": newton_iterations}
+    return SolverConfig(self_contact=SelfContactParams() if self_contact else None, **extra)
 
 
 def run_motion(garment, body, motion: str, n: int, *, device: str, frames: int, substeps: int,
-               cuda_graph: bool, self_contact: bool = False, newton_iterations: int = 1, preset=None) -> dict:
+               cuda_graph: bool, self_contact: bool = False, newton_iterations: int | None = None,
+               preset=None) -> dict:
     """preset: a DatasetSpec whose simulation config (material, solver settings, substeps, protocol)
     replaces the bench's own (substeps, self_contact and newton_iterations are then the spec's)."""
     from dataclasses import replace
@@ -89,6 +92,7 @@ def run_motion(garment, body, motion: str, n: int, *, device: str, frames: int, 
     else:
         cfg = SimulationConfig(substeps=substeps, device=device, cuda_graph=cuda_graph,
                                solver=solver_config(self_contact, newton_iterations))
+        newton_iterations = cfg.solver.newton_iterations
     memory = {"before": used_memory_mb(device), "built": None}
 
     def on_frame(done, total, phase):
@@ -136,13 +140,13 @@ def run_motion(garment, body, motion: str, n: int, *, device: str, frames: int, 
 
 
 def run_static(garment, body, n: int, *, device: str, frames: int, substeps: int, fps: float,
-               warmup: int = 2, self_contact: bool = False) -> dict:
+               warmup: int = 2, self_contact: bool = False, newton_iterations: int | None = None) -> dict:
     from simgen.sim import BodyCollider, ClothModel, ImplicitSolver
 
     before = used_memory_mb(device)
     model = ClothModel.concatenate([ClothModel.from_garment(garment, body=body, device=device)] * n)
     collider = BodyCollider.from_static(body.v_template, body.faces, num_instances=n, device=device)
-    solver = ImplicitSolver(model, solver_config(self_contact))
+    solver = ImplicitSolver(model, solver_config(self_contact, newton_iterations))
     state = model.state()
     dt = 1.0 / (fps * substeps)
     use_graph = wp.get_device(device).is_cuda
@@ -184,7 +188,7 @@ def run_static(garment, body, n: int, *, device: str, frames: int, substeps: int
     st = solver.stats
     row = {
         "mode": "static", "instances": n, "self_contact": self_contact, "frames": frames, "substeps": substeps,
-        "cuda_graph": graph is not None,
+        "newton_iterations": solver.config.newton_iterations, "cuda_graph": graph is not None,
         "ms_per_frame_median": median, "cloth_frames_per_s": n * 1e3 / median,
         "cg_per_newton": st["cg_per_newton"],
         "guard_failures": int(solver.deferred_bad.numpy().astype(bool).sum()) if graph is not None else st["retries"],
@@ -211,7 +215,8 @@ def main() -> None:
     parser.add_argument("--no-graph", action="store_true", help="motion mode without CUDA graphs (for the profile)")
     parser.add_argument("--self-contact", choices=["off", "on", "both"], default="both",
                         help="our runs without and/or with cloth self-contact")
-    parser.add_argument("--newton-iterations", type=int, default=1, help="our solver's Newton iterations per substep")
+    parser.add_argument("--newton-iterations", type=int, default=None,
+                        help="our solver's Newton iterations per substep (default: the solver's)")
     parser.add_argument("--peers", nargs="*", default=[], choices=["vbd", "style3d"])
     parser.add_argument("--vbd-iterations", type=int, default=10)
     parser.add_argument("--preset", default=None,
@@ -265,7 +270,7 @@ def main() -> None:
                                 newton_iterations=args.newton_iterations, preset=preset))
             if "static" in args.modes:
                 emit(run_static(garment, body, n, device=device, frames=args.frames, substeps=args.substeps,
-                                fps=args.fps, self_contact=sc))
+                                fps=args.fps, self_contact=sc, newton_iterations=args.newton_iterations))
     if args.peers:
         sys.path.insert(0, str(Path(__file__).resolve().parent))
         from bench_newton_peer import run_newton_peer

@@ -69,6 +69,7 @@ def variants() -> dict:
         "newton_1_cg_tol_1e-5": ({}, {"newton_iterations": 1, "cg_tolerance": 1.0e-5}),
         "newton_1_cg_200_tol_1e-5": ({}, {"newton_iterations": 1, "cg_iterations": 200, "cg_tolerance": 1.0e-5}),
         "newton_1_no_warm_start": ({}, {"newton_iterations": 1, "cg_warm_start": False}),
+        "newton_1_no_friction": ({}, {"newton_iterations": 1, "friction": None}),
         "no_friction": ({}, {"friction": None}),
         "friction_mu_0.1": ({"material_overrides": {"friction_coefficient": 0.1}}, {}),
         "friction_load_cap_2": ({}, {"friction": FrictionParams(max_normal_load=2.0)}),

@@ -30,8 +30,9 @@ CLIPS = (("tshirt", "walk"), ("tshirt", "jumping_jacks"), ("tshirt", "cmu_131_03
 SIZE = (1280, 720)
 
 
-def simulate_all(device: str, out: Path) -> None:
-    """Run every picture's simulation (module doc) and save it under ``out``."""
+def simulate_all(device: str, out: Path, only: list[str] | None = None) -> None:
+    """Run every picture's simulation (module doc), or those named in ``only`` (rest_tshirt,
+    tshirt_walk, ...), and save it under ``out``."""
     from simgen import body as body_pkg
     from simgen.garment.library import load_garment
     from simgen.motion.library import load_motion
@@ -42,6 +43,8 @@ def simulate_all(device: str, out: Path) -> None:
     cfg = SimulationConfig(record_body=True, device=device)
     out.mkdir(parents=True, exist_ok=True)
     for name in GARMENTS:
+        if only and f"rest_{name}" not in only:
+            continue
         garment, clip = load_garment(name, body=body), trim(load_motion("walk"), 1.0, 1.5)
         t = time.perf_counter()
         jobs = [SimulationJob(clip, np.array(b), frames=1) for b in SHAPES.values()]
@@ -49,6 +52,8 @@ def simulate_all(device: str, out: Path) -> None:
         _save(out / f"rest_{name}.npz", results, [0] * len(results), body, labels=list(SHAPES))
         print(json.dumps({"picture": f"rest_{name}", "seconds": round(time.perf_counter() - t, 1)}))
     for name, motion in CLIPS:
+        if only and f"{name}_{motion}" not in only:
+            continue
         garment, clip = load_garment(name, body=body), load_motion(motion)
         t = time.perf_counter()
         (result,) = simulate_batch(garment, body, [SimulationJob(clip, np.zeros(1))], cfg)
@@ -120,12 +125,18 @@ def main() -> None:
     s = sub.add_parser("simulate")
     s.add_argument("--device", default="cuda:0")
     s.add_argument("--out", type=Path, required=True)
+    s.add_argument("--only", nargs="+", default=None, metavar="PICTURE",
+                   help="just these pictures: rest_<garment> or <garment>_<motion> (default: all)")
     r = sub.add_parser("render")
     r.add_argument("data", type=Path)
     r.add_argument("--out", type=Path, default=Path("docs/img"))
     a = p.parse_args()
     if a.cmd == "simulate":
-        simulate_all(a.device, a.out)
+        known = [f"rest_{g}" for g in GARMENTS] + [f"{g}_{m}" for g, m in CLIPS]
+        unknown = sorted(set(a.only or []) - set(known))
+        if unknown:
+            p.error(f"--only: unknown picture(s) {', '.join(unknown)}; known: {', '.join(known)}")
+        simulate_all(a.device, a.out, a.only)
     else:
         render_all(a.data, a.out)
 

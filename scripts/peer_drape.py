@@ -101,13 +101,15 @@ def newton_peer_module():
     return bench_newton_peer
 
 
-def played_clip(name: str, frames: int):
-    """The bundled or AMASS motion ``name`` played as it is (its own fps); it needs ``frames`` frames."""
+def played_clip(name: str, frames: int, fps: float):
+    """The bundled or AMASS motion ``name`` (resampled to ``fps`` [1/s] by the protocol's schedule,
+    as the simulation does); it must last ``frames`` output frames."""
     from simgen.motion import load_motion
 
     clip = load_motion(name)
-    if clip.num_frames < frames:
-        raise SystemExit(f"--motion {name} has {clip.num_frames} frames, fewer than --frames {frames}")
+    if (clip.num_frames - 1) / clip.fps < (frames - 1) / fps:
+        raise SystemExit(f"--motion {name} lasts {(clip.num_frames - 1) / clip.fps:.2f} s, shorter than --frames "
+                         f"{frames} at {fps:g} fps")
     return clip
 
 
@@ -134,7 +136,7 @@ class BodyTrajectory:
     :class:`simgen.sim.frame_runner.FrameRunner` calls them: start pose (rest pose at the clip's
     first root translation), then per substep re-shape while the betas change, and pose.
 
-    body: BodyModel; clip: the held MotionClip; betas: target shape (B',); config: the
+    body: BodyModel; clip: the MotionClip (held or played); betas: target shape (B',); config: the
     SimulationConfig giving fps, substeps and the protocol's frame counts; frames: our output frames.
 
     steps: the stepped frames [(phase, k)] in order; trans0 [m] (3,): the root translation;
@@ -264,7 +266,7 @@ def _keep(x: np.ndarray, t: int, traj: BodyTrajectory, kept: dict) -> None:
 
 
 def run_ours(variant: str, garment, body, clip, traj: BodyTrajectory, args, parts) -> tuple[dict, dict]:
-    """Our solver on the held clip with variant ``variant``; the JSON row and the arrays to save."""
+    """Our solver on the clip (held or played) with variant ``variant``; the JSON row and the arrays to save."""
     from simgen.sim import SimulationFailure, SimulationJob, simulate_batch
 
     cfg = fit_report.variant_config(variant, **protocol_settings(args), record_body=True, device=args.device)
@@ -361,7 +363,7 @@ def parse_args(argv=None):
 
 
 def setup(args):
-    """Body, garment, hem/sleeve masks, held clip, body trajectory and the run's JSON header."""
+    """Body, garment, hem/sleeve masks, the clip (held or played), body trajectory and the JSON header."""
     import warp as wp
 
     from simgen._warp_log import quiet_warp
@@ -374,16 +376,17 @@ def setup(args):
     garment = load_garment(args.garment, body=body)
     parts = fit_report.garment_parts(garment)
     clip = (held_clip(args.pose_frame, args.frames, args.fps) if args.motion is None
-            else played_clip(args.motion, args.frames))
+            else played_clip(args.motion, args.frames, args.fps))
     traj = BodyTrajectory(body, clip, args.betas or [], SimulationConfig(**protocol_settings(args)), args.frames,
                           args.device)
     x0 = (np.asarray(garment.vertices, dtype=np.float64) + traj.trans0).astype(np.float32)
+    pose = {**clip.meta} if args.motion is None else {"motion": args.motion, "fps": clip.fps}
+    pose["root_translation_m"] = traj.trans0.tolist()
     header = {"benchmark": "peer_drape", "device": wp.get_device(args.device).name, "device_alias": args.device,
               "commit": fit_report.commit(), "warp": wp.__version__, "garment": args.garment,
               "garment_vertices": int(len(garment.vertices)), "hem_vertices": int(parts[0].sum()),
               "sleeve_vertices": int(parts[1].sum()), "body": "open", "body_vertices": int(body.num_vertices),
-              "betas": args.betas or [], "pose": ({**clip.meta, "root_translation_m": traj.trans0.tolist()} if args.motion is None
-                       else {"motion": args.motion, "fps": clip.fps, "root_translation_m": traj.trans0.tolist()}),
+              "betas": args.betas or [], "pose": pose,
               "frames": args.frames, "stepped_frames": len(traj.steps), "transition_end_frame": traj.transition_end,
               **protocol_settings(args), "newton_iterations": args.iterations,
               "initial": fit_report.frame_metrics(x0, traj.start, traj.faces, *parts, args.device), "runs": []}

@@ -39,7 +39,7 @@ Layout (every table and field optional except ``garment.names``)::
     device = "auto"                           # "auto" | "cpu" | "cuda" | "cuda:N"
     fps = 30.0                                # output frames per second (clips are resampled to it)
     substeps = 10                             # solver steps per frame (SimulationConfig.substeps)
-    newton_iterations = 2                     # e.g.: any other simgen.sim.SolverConfig field, with its
+    cg_iterations = 50                        # e.g.: any other simgen.sim.SolverConfig field, with its
     strain_limit = 0.5                        # name, bounds and default (solver_settings(); SolverConfig's
                                               # docstring lists them; TOML has no None: unset is the default)
     friction = true                           # false: no cloth-body friction (or a [solver.friction] table)

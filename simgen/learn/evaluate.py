@@ -520,7 +520,7 @@ def _cell(value, width: int, digits: int) -> str:
     """``value`` right-aligned in ``width`` characters with ``digits`` decimals, in exponent notation
     where the fixed form would not leave a blank before it (a diverged run's 1e20 stays readable)."""
     fixed = f"{value:{width}.{digits}f}"
-    return fixed if len(fixed) < width or fixed.startswith(" ") else f"{value:{width}.3e}"
+    return fixed if fixed.startswith(" ") else f"{value:{width}.3e}"
 
 
 def format_summary(metrics: dict) -> str:
@@ -534,12 +534,12 @@ def format_summary(metrics: dict) -> str:
     lines.append("-" * len(head))
     for m in methods:
         lines.append(f"{METHOD_LABELS[m]:40s}" + "".join(
-            f"{groups[g]['error_cm'].get(m, float('nan')):18.3f}" for g in names))
+            _cell(groups[g]['error_cm'].get(m, float('nan')), 18, 3) for g in names))
     lines.append("")
     lines.append(f"{'vertices inside the body [%]':40s}" + "".join(f"{g:>18s}" for g in names))
     for m in SET_LABELS:
         lines.append(f"{SET_LABELS[m]:40s}" + "".join(
-            f"{groups[g].get('inside_percent', {}).get(m, float('nan')):18.3f}" for g in names))
+            _cell(groups[g].get('inside_percent', {}).get(m, float('nan')), 18, 3) for g in names))
     if all("triangle_strain" in groups[g] for g in names):
         lines.append("")
         lines.append(f"{'mean triangle strain ||G||_F^2':40s}" + "".join(f"{g:>18s}" for g in names))

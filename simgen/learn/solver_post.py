@@ -23,7 +23,9 @@ length), while the guard splits more of them. From fit-only predictions of the t
 model (the hop and dance against CPU-simulated ground truth) 20 substeps of 1/300 s left 1.7x the
 simulation's strain energy, 5 of 1/75 s 2.8x for half the CG work (its guard's retries counted)
 and 10 of 1/300 s 3.4x for about the same work, all at the same vertex error; a third Newton
-iteration per substep relaxes more but moves the cloth off the prediction (BENCHMARKS.md).
+iteration per substep relaxes more but moves the cloth off the prediction (BENCHMARKS.md), so the
+post-process takes two (:data:`NEWTON_ITERATIONS`) whatever the store's solver took (three since
+2026-11-29, two before).
 
 Every frame is its own cloth instance on its own body; a call steps its frames ``chunk`` at a time,
 each chunk from a clean solver (no friction contacts or CG guesses carried over). A frame fails
@@ -41,6 +43,7 @@ last two frames' time.
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 
 import numpy as np
 import torch
@@ -48,11 +51,14 @@ import torch
 from simgen.dataset.quality import DEFAULT_MAX_STRAIN
 from simgen.errors import InputError
 
-__all__ = ["DEFAULT_DURATION", "DEFAULT_SUBSTEPS", "SolverPostProcess", "solver_config_from_attrs"]
+__all__ = ["DEFAULT_DURATION", "DEFAULT_SUBSTEPS", "NEWTON_ITERATIONS", "SolverPostProcess",
+           "solver_config_from_attrs"]
 
 #: Substeps per frame and the simulated time they span [s] (module doc).
 DEFAULT_SUBSTEPS = 5
 DEFAULT_DURATION = 1.0 / 15.0
+#: Newton iterations per substep of the post-process (module doc), in place of the store's.
+NEWTON_ITERATIONS = 2
 
 
 def solver_config_from_attrs(attrs: dict):
@@ -114,13 +120,14 @@ class SolverPostProcess:
     def from_data(cls, data, body, *, substeps: int = DEFAULT_SUBSTEPS, duration: float = DEFAULT_DURATION,
                   **kw) -> SolverPostProcess:
         """The post-process of a :class:`simgen.learn.data.GarmentData` (its rest template,
-        material and the store's solver settings) on ``body`` (a BodyModel), ``substeps`` substeps
-        over ``duration`` [s] per frame; InputError when the data lacks them."""
+        material and the store's solver settings, with :data:`NEWTON_ITERATIONS`) on ``body`` (a
+        BodyModel), ``substeps`` substeps over ``duration`` [s] per frame; InputError when the data
+        lacks them."""
         from simgen.body.parts import face_part_masks, face_parts, vertex_parts
 
         if data.rest_template is None or data.material is None:
             raise InputError("the dataset holds no solver rest template or material for the solver post-process")
-        config = solver_config_from_attrs(data.attrs)
+        config = replace(solver_config_from_attrs(data.attrs), newton_iterations=NEWTON_ITERATIONS)
         faces = np.asarray(body.faces)
         masks = face_part_masks(np.asarray(body.v_template), faces, face_parts(np.asarray(body.weights), faces))
         return cls(data.rest_template, data.faces, vertex_parts(data.skin_weights), data.material, config,

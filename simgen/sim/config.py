@@ -27,8 +27,8 @@ class SolverConfig:
     ARCSim, dissipates the cloth's swing (a sheet hinged along one edge and released from
     horizontal swings back 17% less high than converged backward Euler takes it; two and three
     iterations agree with it, tests/test_sim_solver.py), and in the demo's walk the T-shirt's hem
-    then stays pressed onto the thighs: up to 79% of its lowest 10 cm within 3 mm of the body with
-    one iteration, 63% with two, 40% with three (BENCHMARKS.md, 2026-11-29).
+    then stays pressed onto the thighs: up to 79-83% of its lowest 10 cm within 3 mm of the body
+    with one iteration, 63% with two, 40% with three (BENCHMARKS.md, 2026-11-29).
 
     The Newton tolerance costs a host read per iteration, so it is off by default and for graph
     capture. The floor acts through the body contact's penalty against it and, with ``project``, a
