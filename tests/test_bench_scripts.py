@@ -138,14 +138,20 @@ def test_softtissue_runtime_times_a_trained_folder(tmp_path):
 def test_untangle_replay_untangles_the_coarse_collar_fold(tmp_path):
     """With two Newton iterations the coarse T-shirt's collar folds through itself in kick at beta 1
     = +2 from frame 24 on (no self-contact); with the previous frame as reference every tangled frame
-    is untangled. (With the default three, only one boundary edge crosses, on frame 23 alone: an
-    intersection path that ends on the boundary, which the intersection analysis cannot close.)"""
+    is untangled. With the default three, one collar edge crosses its neighbour triangle on frame 23
+    alone: a fold at the boundary, where pushing the edge's vertex through the plane makes its other
+    edges cross; the moves alone swing it back and forth for all 200 rounds, and the reference's
+    roll-back (untangle's step 5) removes it."""
     result = run_script("untangle_replay.py", "--frames", "28", "--newton-iterations", "2",
                         out=tmp_path / "untangle.json")
     ref = result["with_reference"]
     assert result["garment"] == "tshirt_1k" and ref["frames_tangled"] == result["alone"]["frames_tangled"] > 0
     assert ref["frames_untangled"] == ref["frames_tangled"]
     assert all(row["left"] == 0 and row["crossings"] > 0 for row in ref["frames"])
+    result = run_script("untangle_replay.py", "--frames", "24", out=tmp_path / "untangle3.json")
+    alone, ref = result["alone"], result["with_reference"]
+    assert [row["frame"] for row in ref["frames"]] == [23] and ref["frames_untangled"] == 1
+    assert alone["frames_untangled"] == 0 and alone["frames"][0]["rounds"] == 200
 
 
 def test_bench_frame_stats_host_times_placement_and_strain(tmp_path):

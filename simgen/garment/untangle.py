@@ -22,6 +22,12 @@ cloth", SIGGRAPH 2003) with the contour-shrinking moves of intersection contour 
    other way instead. Moves requested of one vertex by several pairs are averaged.
 4. Repeat until no edge crosses. Each round pushes the contour's inner rim back through, so the
    contour shrinks and closes, as in ICM.
+5. With a reference, a crossing that ``ROLLBACK_AFTER`` rounds of moves have not removed is rolled
+   back instead: the vertices of the pairs left and their neighbours move halfway to their
+   reference positions each round. This takes the folds the moves cannot close: at a boundary,
+   where pushing a fan vertex through the triangle's plane makes its other edges cross, and the
+   next round pushes it back (a collar edge through its neighbour triangle in ``kick``,
+   tests/test_bench_scripts.py).
 
 A vertex moves only while it is part of a crossing, by at most the depth it has gone through plus
 the margin per round; nothing else is touched. The result says how many rounds it took and whether
@@ -40,7 +46,10 @@ from scipy.sparse.csgraph import connected_components
 from simgen.errors import InputError
 from simgen.garment.crossings import CrossingCounter
 
-__all__ = ["UntangleResult", "untangle"]
+__all__ = ["ROLLBACK_AFTER", "UntangleResult", "untangle"]
+
+#: rounds of moves after which the crossings left are rolled back toward the reference (step 5)
+ROLLBACK_AFTER = 10
 
 
 @dataclass(frozen=True)
@@ -121,6 +130,20 @@ def _moves(x: np.ndarray, faces: np.ndarray, edges: np.ndarray, pairs: np.ndarra
     return total, hits
 
 
+def _roll_back(x: np.ndarray, reference: np.ndarray, edges: np.ndarray, faces: np.ndarray, pairs: np.ndarray,
+               free: np.ndarray) -> None:
+    """Move the free vertices of the crossing pairs and their neighbours halfway to the reference,
+    in place (module doc, step 5)."""
+    core = np.zeros(len(x), dtype=bool)
+    core[edges[pairs[:, 0]].ravel()] = True
+    core[faces[pairs[:, 1]].ravel()] = True
+    ring = core.copy()
+    touch = core[edges[:, 0]] | core[edges[:, 1]]
+    ring[edges[touch].ravel()] = True
+    ring &= free
+    x[ring] = reference[ring] + 0.5 * (x[ring] - reference[ring])
+
+
 def untangle(positions, faces, *, pinned=None, reference=None, margin: float = 5.0e-4, max_rounds: int = 200,
              device: str = "cpu", counter: CrossingCounter | None = None) -> UntangleResult:
     """Untangle a garment's positions (module doc).
@@ -151,9 +174,12 @@ def untangle(positions, faces, *, pinned=None, reference=None, margin: float = 5
     before = len(np.unique(pairs[:, 0]))
     rounds = 0
     while len(pairs) and rounds < max_rounds:
-        total, hits = _moves(x, f, counter.edges, pairs, free, margin, ref)
-        moving = hits > 0
-        x[moving] += total[moving] / hits[moving, None]
+        if ref is not None and rounds >= ROLLBACK_AFTER:
+            _roll_back(x, ref, counter.edges, f, pairs, free)
+        else:
+            total, hits = _moves(x, f, counter.edges, pairs, free, margin, ref)
+            moving = hits > 0
+            x[moving] += total[moving] / hits[moving, None]
         rounds += 1
         pairs = counter.pairs(x)
     shift = np.linalg.norm(x - start, axis=1)
