@@ -29,8 +29,9 @@ cloth", SIGGRAPH 2003) with the contour-shrinking moves of intersection contour 
    next round pushes it back (a collar edge through its neighbour triangle in ``kick``,
    tests/test_bench_scripts.py).
 
-A vertex moves only while it is part of a crossing, by at most the depth it has gone through plus
-the margin per round; nothing else is touched. The result says how many rounds it took and whether
+Until the roll-back, a vertex moves only while it is part of a crossing, by at most the depth it
+has gone through plus the margin per round, and nothing else is touched; the roll-back also moves
+the crossing's neighbours, toward the reference only. The result says how many rounds it took and whether
 any crossing is left (a tangle that the rounds cannot shrink, e.g. two layers knotted through a
 pinned region, is reported, not hidden).
 """
@@ -151,7 +152,8 @@ def untangle(positions, faces, *, pinned=None, reference=None, margin: float = 5
     positions [m] (V, 3); faces (F, 3) int; pinned: bool (V,) vertices that must not move (default
     none); reference [m] (V, 3): an earlier untangled state of the same cloth (a simulation's frame
     start), whose sides decide which vertex went through wherever both ends of a crossing edge lay
-    on one side of the triangle then; margin [m]: how far beyond the other layer a moved vertex
+    on one side of the triangle then, and toward which crossings left after ``ROLLBACK_AFTER``
+    rounds are rolled back; margin [m]: how far beyond the other layer a moved vertex
     lands; max_rounds: the most detect-and-move rounds; device: where the crossings are found
     ("cpu", "cuda:0"); counter: a :class:`CrossingCounter` of these faces to reuse. Returns an
     :class:`UntangleResult`.
