@@ -225,6 +225,8 @@ def main() -> None:
                              "from the spec)")
     parser.add_argument("--out", type=Path, default=None)
     args = parser.parse_args()
+    if args.newton_iterations is not None and args.newton_iterations < 1:
+        parser.error(f"--newton-iterations must be >= 1, got {args.newton_iterations}")
 
     from simgen.body import load
     from simgen.garment import load_garment

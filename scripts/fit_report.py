@@ -59,6 +59,7 @@ def variants() -> dict:
     defaults (three Newton iterations since 2026-11-29) or the thesis-tshirt preset's solver."""
     from simgen.params import ContactParams, FrictionParams
 
+    preset = preset_solver()
     return {
         "default": ({}, {}),
         "newton_1": ({}, {"newton_iterations": 1}),
@@ -77,8 +78,8 @@ def variants() -> dict:
         "stiff_contact": ({}, {"contact": ContactParams(stiffness=1.0e5)}),
         "cotton": ({"material": "cotton"}, {}),
         "no_projection": ({}, {"project": False}),
-        "preset": ({"material": "interlock"}, preset_solver()),
-        "preset_newton_2": ({"material": "interlock"}, {**preset_solver(), "newton_iterations": 2}),
+        "preset": ({"material": "interlock"}, preset),
+        "preset_newton_2": ({"material": "interlock"}, {**preset, "newton_iterations": 2}),
     }
 
 

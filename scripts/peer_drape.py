@@ -104,9 +104,13 @@ def newton_peer_module():
 def played_clip(name: str, frames: int, fps: float):
     """The bundled or AMASS motion ``name`` (resampled to ``fps`` [1/s] by the protocol's schedule,
     as the simulation does); it must last ``frames`` output frames."""
+    from simgen.errors import InputError
     from simgen.motion import load_motion
 
-    clip = load_motion(name)
+    try:
+        clip = load_motion(name)
+    except InputError as exc:
+        raise SystemExit(f"--motion: {exc}") from None
     if (clip.num_frames - 1) / clip.fps < (frames - 1) / fps:
         raise SystemExit(f"--motion {name} lasts {(clip.num_frames - 1) / clip.fps:.2f} s, shorter than --frames "
                          f"{frames} at {fps:g} fps")

@@ -77,6 +77,8 @@ def main() -> None:
     p.add_argument("--device", default="cpu")
     p.add_argument("--out", help="also write the JSON to this file")
     args = p.parse_args()
+    if args.newton_iterations is not None and args.newton_iterations < 1:
+        p.error(f"--newton-iterations must be >= 1, got {args.newton_iterations}")
     x, faces, crossing = simulate_tangled(args)
     out = {"benchmark": "untangle_replay", "device": args.device, "commit": commit(), "garment": args.garment,
            "motion": args.motion, "betas": args.betas, "frames": args.frames, "vertices": int(x.shape[1]),
