@@ -10,11 +10,13 @@ sign):
 - sleeve_gap [m]: the largest distance from the body of a sleeve vertex (a vertex whose dominant
   skinning joint is an SMPL shoulder, elbow or wrist, 16-21);
 - hem_mean_distance [m]: mean distance of the hem vertices from the body; inside_share: share of
-  all cloth vertices inside the body; y_min [m]: the lowest cloth vertex; finite: no NaN/inf.
+  all cloth vertices inside the body; y_min [m]: the lowest cloth vertex; finite: no NaN/inf;
+  arm_angle [deg]: the larger angle of the upper arms from the downward vertical.
 
 Each run reports them per frame (``per_frame``, in --out), at the end of the transition (the last
 ramp frame: the body has just reached the standing pose) and at the end of the run, and the
-largest hem_cling and sleeve_gap over the frames after the transition.
+largest hem_cling over the frames after the transition and the largest sleeve_gap over those
+with the arms down (both upper arms within 45 deg of the vertical; fit_report.py).
 
 Scene (one for all solvers):
 
@@ -87,7 +89,7 @@ MOTION = "idle_sway"
 DEFAULT_POSE_FRAME = 81  # idle_sway at t = 2.7 s: arms down, pelvis level (module docstring)
 # Per-frame metrics (fit_report.frame_metrics) and the unit suffix of their JSON keys.
 METRICS = (("hem_cling", ""), ("sleeve_gap", "_m"), ("hem_mean_distance", "_m"), ("inside_share", ""),
-           ("y_min", "_m"))
+           ("y_min", "_m"), ("arm_angle", "_deg"))
 
 
 def newton_peer_module():
@@ -249,14 +251,15 @@ class MovingBodyMesh:
 def summarize(series: list[dict], transition_end: int, total: int) -> dict:
     """JSON fields of one run from its per-frame metrics (a diverged run's series stops early):
     each metric at the transition's end and at the end (None if not reached), the largest
-    hem_cling and sleeve_gap after the transition, and the per-frame lists."""
+    hem_cling after the transition and sleeve_gap there with the arms down (fit_report's
+    ``arms_down_max``; None if they never are), and the per-frame lists."""
     row = {}
     for tag, t in (("transition_end", transition_end), ("end", total - 1)):
         for key, unit in METRICS:
             row[f"{key}_{tag}{unit}"] = series[t][key] if t < len(series) else None
     hold = series[transition_end + 1:]
     row["hem_cling_max_after_transition"] = max((m["hem_cling"] for m in hold), default=None)
-    row["sleeve_gap_max_after_transition_m"] = max((m["sleeve_gap"] for m in hold), default=None)
+    row["sleeve_gap_max_after_transition_m"] = fit_report.arms_down_max(hold)
     row["per_frame"] = {key + unit: [m[key] for m in series] for key, unit in METRICS}
     return row
 

@@ -1,7 +1,7 @@
 """Untangling on real tangles: simulate a garment without self-contact, untangle every tangled frame.
 
 Simulates GARMENT in MOTION at one shape with a dataset preset's solver settings and self-contact
-off (CPU by default: the coarse T-shirt in ``kick`` at beta 1 = +2 tangles its collar with two Newton
+off (CPU by default: the coarse T-shirt in ``kick`` at beta 1 = +2 tangles with two Newton
 iterations per substep), then runs
 :func:`simgen.garment.untangle.untangle` on each frame with crossing edges in two ways: alone
 (global intersection analysis only), and as the frame-end repair does it, with a reference: the

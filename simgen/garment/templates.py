@@ -79,7 +79,7 @@ DEFAULT_SKINNING = {"tshirt": "closest", "tank_top": "closest", "dress": "diffus
 
 CLEARANCE = 0.002  # [m] every vertex at least this far outside the template body (the contract)
 CLEARANCE_MARGIN = 0.003  # [m] added by the generator, so the contract holds with room to spare
-GENERATOR_VERSION = 1
+GENERATOR_VERSION = 2
 
 # Rough surface area [m^2] of each template on a 1.70 m body: chooses the contouring grid before
 # the real area is known (it only sets the grid spacing, not the result's size).
@@ -294,7 +294,11 @@ def _top_recipe(name: str, body, lm: BodyLandmarks, edge_length: float) -> Templ
         torso = _profile([hem_y, lm.waist_y, armpit - 0.05 * s, armpit + 0.05 * s],
                          [0.035 * s, 0.030 * s, 0.025 * s, 0.012 * s])
         sleeve = 0.45
-        ease = _with_arms(lm, torso, 0.016 * s, 0.030 * s, sleeve)
+        # Sleeve ease 1.3 cm at the shoulder joint, 0.8 cm at the opening: a 33.3 cm opening on
+        # the arm's 28.6 cm, between the S and the M of a published chart (docs/garment_sizes.md).
+        # With 3 cm (46.9 cm) the ring hung on one side of the lowered arm and stood up to 6.8 cm
+        # off it on the other in the walk (BENCHMARKS.md, 2026-11-29).
+        ease = _with_arms(lm, torso, 0.013 * s, 0.008 * s, sleeve)
         neck_keep, neck_params = _neckline(probe, lm, front_y=neck[1] - 0.05 * s, back_y=neck[1] + 0.005 * s,
                                            side_r=lm.neck_extent[0] + 0.02 * s, ease=0.012 * s)
         openings = [Opening("neck", neck_keep), Opening("hem", _above(hem_y)),
