@@ -65,8 +65,7 @@ def main() -> int:
 
     from simgen.dataset import open_dataset
     from simgen.learn.data import body_for_identity, load_garment_data
-    from simgen.learn.evaluate import physics_terms, triangle_strain
-    from simgen.learn.evaluate import _cloth_rest
+    from simgen.learn.evaluate import cloth_rest, physics_terms, triangle_strain
     from simgen.learn.garment_model import load_garment_model, load_split
     from simgen.learn.solver_post import SolverPostProcess
 
@@ -81,7 +80,7 @@ def main() -> int:
     model = load_garment_model(args.model, identity=identity, device=dev)
     body = body_for_identity(data.identity)
     faces = model.body.faces.cpu().numpy()
-    rest = _cloth_rest(data)
+    rest = cloth_rest(data)
 
     runs = []
     with torch.no_grad():

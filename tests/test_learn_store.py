@@ -12,6 +12,7 @@ import pytest
 import torch
 
 from simgen.cli import main
+from simgen.garment import load_garment
 from simgen.learn.solver_post import DEFAULT_SUBSTEPS, NEWTON_ITERATIONS
 
 
@@ -112,7 +113,8 @@ def test_train_eval_compare_through_the_cli(store, tmp_path, capsys):
     assert train["model_raw"] < 0.5 * train["lbs"]
     assert metrics["timing"]["cpu"]["with_postprocess"]["mean_ms"] > 0
     assert metrics["timing"]["cpu"]["with_metric_postprocess"]["mean_ms"] > 0
-    assert metrics["size_mb"]["fit"] == pytest.approx((3 * 521 * 21 + 10 * 20 + 20) * 4 / 1e6)
+    v = load_garment("tshirt_1k").num_vertices
+    assert metrics["size_mb"]["fit"] == pytest.approx((3 * v * 21 + 10 * 20 + 20) * 4 / 1e6)
     assert len(metrics["shape_static"]["shapes"]) == 2 and metrics["shape_motion"]["motion"] == "walk_fast"
     for name in ("error_per_frame.png", "shape_generalization.png", "training.png"):
         assert (ev / name).stat().st_size > 10_000

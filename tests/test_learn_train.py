@@ -217,9 +217,9 @@ def test_the_cli_fills_what_is_not_given_from_the_folders_split(data, tmp_path):
 def test_triangle_strain_of_a_stretch_and_a_rotation(data):
     """Table 6.2's strain as simgen defines it: the mean over triangles of ||G||_F^2. A rigid motion
     of the rest template has none; a uniform stretch by s has (s^2 - 1)^2 / 2 on every triangle."""
-    from simgen.learn.evaluate import _cloth_rest, triangle_strain
+    from simgen.learn.evaluate import cloth_rest, triangle_strain
 
-    rest = _cloth_rest(data)
+    rest = cloth_rest(data)
     x = np.asarray(data.rest_template if data.rest_template is not None else data.template, dtype=np.float64)
     c, s = np.cos(0.7), np.sin(0.7)
     turned = x @ np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]]).T + [0.3, -0.2, 1.0]

@@ -24,7 +24,7 @@ from simgen.errors import InputError
 wp.config.quiet = True
 DEVICE = os.environ.get("SIMGEN_TEST_DEVICE", "cpu")  # the device machine runs these on "cuda:0"
 
-# beta 2 = +2 widens the open body's torso: 217 of the T-shirt's 521 template vertices (up to
+# beta 2 = +2 widens the open body's torso: 248 of the T-shirt's 527 template vertices (up to
 # 1.9 cm deep) lie inside that shaped body in rest pose, so the ramp has real work to do.
 BETAS = np.array([0.0, 0.0, 2.0])
 FRAMES = 4

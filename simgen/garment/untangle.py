@@ -26,8 +26,8 @@ cloth", SIGGRAPH 2003) with the contour-shrinking moves of intersection contour 
    back instead: the vertices of the pairs left and their neighbours move halfway to their
    reference positions each round. This takes the folds the moves cannot close: at a boundary,
    where pushing a fan vertex through the triangle's plane makes its other edges cross, and the
-   next round pushes it back (a collar edge through its neighbour triangle in ``kick``, docs/sim.md;
-   tests/test_bench_scripts.py replays the coarse T-shirt there).
+   next round pushes it back (a collar edge through its neighbour triangle in ``kick``, docs/sim.md,
+   kept as a test case in tests/data/untangle_collar_fold.npz).
 
 Until the roll-back, a vertex moves only while it is part of a crossing, by at most the depth it
 has gone through plus the margin per round, and nothing else is touched; the roll-back also moves

@@ -43,7 +43,7 @@ from simgen.learn.garment_model import (FIT_DIR, WRINKLE_DIR, GarmentModel, Stre
                                         load_split)
 
 __all__ = ["THESIS", "METHODS", "METHOD_LABELS", "evaluate_garment", "time_inference", "format_summary",
-           "triangle_strain", "physics_terms", "METRICS_FILE"]
+           "triangle_strain", "physics_terms", "cloth_rest", "METRICS_FILE"]
 
 METRICS_FILE = "metrics.json"
 
@@ -162,7 +162,7 @@ def physics_terms(data: GarmentData, runs: list[dict], body, device) -> dict:
         return {"skipped": "the data carries no material (not read from a dataset store)"}
     solver = data.attrs.get("solver", {})
     params = contact_params_from(solver.get("config", solver))
-    rest = _cloth_rest(data)
+    rest = cloth_rest(data)
     surface = BodySurface(body.faces, body.v_template)
     sums: dict[str, dict[str, list]] = {}
     for run in runs:
@@ -178,7 +178,7 @@ def physics_terms(data: GarmentData, runs: list[dict], body, device) -> dict:
     return out
 
 
-def _cloth_rest(data: GarmentData):
+def cloth_rest(data: GarmentData):
     """The garment's rest geometry as the solver had it (its rest template, else the template),
     float64; the material only sets the energies' stiffness (cotton when the data has none)."""
     from simgen.physics import ClothRest
@@ -339,7 +339,7 @@ def evaluate_garment(model_dir: str | Path, data: GarmentData, out_dir: str | Pa
     inside: dict[str, dict[str, list]] = {}
     physics_runs: list[dict] = []
     strain: dict[str, dict[str, list]] = {}
-    rest = _cloth_rest(data)
+    rest = cloth_rest(data)
     done = 0
     for group, ids in groups.items():
         for sid in ids:

@@ -52,7 +52,7 @@ below ``clearance + contact_band`` keeps the tangent plane through its closest p
 planes only approximate the body near the positions of the last query).
 
 Cost per iteration: one batched 2x2 closed form per triangle and the global solve. On a GPU the dense
-inverse holds V^2 entries (78 MB at V = 4405 in float32), read once per iteration; there is no
+inverse holds V^2 entries (77 MB at V = 4399 in float32), read once per iteration; there is no
 Python loop over triangles or vertices and no host synchronisation between two contact queries (a
 query checks its result on the host), so for one frame on a GPU each such stretch is replayed from
 a CUDA graph (a frame's few hundred small kernels take longer to launch from Python than to run);
