@@ -262,18 +262,13 @@ def _check_manifest(rep: CheckReport, loc, m: dict) -> bool:
 
 def _context(ds, bm, template_ok: bool, device: str) -> _Context:
     """The :class:`_Context` of store ``ds`` on body ``bm``; the template's parts only when template_ok."""
-    from simgen.body.parts import face_part_masks, face_parts, vertex_parts
-    from simgen.dataset.quality import triangle_rest_inverse
-    from simgen.params import ContactParams
+    from simgen.dataset.quality import penetration_rule, triangle_rest_inverse
     from simgen.sim.placement import garment_reference
 
     tpl = ds.template if template_ok else None
     faces = tpl["faces"].astype(np.int64) if tpl is not None else None
     rest_inv = triangle_rest_inverse(tpl["garment_template"], faces) if tpl is not None else None
     V = len(tpl["vertices"]) if tpl is not None else None
-    # The solver's contact keeps cloth on its own body part where the body intersects itself: the
-    # same part labels classify such cloth as at a self-intersection here.
-    home_parts = vertex_parts(tpl["skin_weights"]) if tpl is not None else None
     reference = None
     if tpl is not None:
         from simgen.garment.garment import Garment
@@ -283,10 +278,10 @@ def _context(ds, bm, template_ok: bool, device: str) -> _Context:
         reference = garment_reference(cloth, bm)
     solver_config = (ds.attrs.get("solver") or {}).get("config") or {}
     floor = solver_config.get("floor")  # stores made before the floor have none
-    part_masks = face_part_masks(bm.v_template, bm.faces, face_parts(bm.weights, bm.faces))
-    contact = solver_config.get("contact") or {}
-    pinch_distance = float(contact.get("pinch_distance", ContactParams.pinch_distance))
-    penetration = dict(device=device, home_parts=home_parts, part_masks=part_masks, pinch_distance=pinch_distance)
+    # The solver's contact keeps cloth on its own body part where the body intersects itself: the
+    # same part labels classify such cloth as at a self-intersection here.
+    weights = tpl["skin_weights"] if tpl is not None else None
+    penetration = dict(device=device, **penetration_rule(weights, bm, solver_config))
     crossings = None
     if tpl is not None:
         from simgen.garment.crossings import CrossingCounter

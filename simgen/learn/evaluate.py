@@ -8,10 +8,11 @@
   simulations S_c(beta, 0)) and on a motion (the held-out motion's sequences of every shape)
   (Fig. 4.6; the thesis sweeps the shape within one simulation, our stores hold one shape per
   simulation, so each point is one simulation);
-- the share of garment vertices inside the body (the winding-number sign of the body-surface
-  query, :func:`simgen.body.surface.project_to_surface`; the post-process pushes out by the
-  pseudo-normal sign, which can disagree where the posed body intersects itself),
-  with and without the post-process, and of the simulation itself for reference;
+- the share of garment vertices inside the body, counted as ``simgen dataset check`` counts its
+  regular vertices (thesis Table 6.1): inside by the winding number and not at a self-intersection
+  of the posed body (armpits, between the thighs: the solver's statistics' rule,
+  :class:`simgen.learn.comparison.metrics.InsideCounter`), with and without the post-process, and
+  of the simulation itself for reference;
 - the energies of the predictions from ``simgen.physics`` (membrane, bending, gravity, contact)
   beside those of the simulation;
 - the mean triangle strain of every sequence (:func:`triangle_strain`, thesis Table 6.2's
@@ -129,22 +130,6 @@ def lbs_baseline_fit(model: GarmentModel, betas: torch.Tensor, transforms: torch
     from simgen.learn.skinning import lbs_torch
 
     return lbs_torch(model.template.template_smoothed + model.fit(betas), model.template.skin_weights, transforms)
-
-
-def _inside_fraction(points: dict[str, np.ndarray], body_vertices: np.ndarray, faces: np.ndarray,
-                     device: str) -> dict[str, float]:
-    """Fraction of each set's points strictly inside the body (winding number), one query."""
-    from simgen.body.surface import project_to_surface
-
-    names = list(points)
-    sizes = [len(points[n]) for n in names]
-    sd = project_to_surface(np.concatenate([points[n] for n in names]), body_vertices, faces,
-                            device=device).signed_distance
-    out, start = {}, 0
-    for n, k in zip(names, sizes):
-        out[n] = float(np.mean(sd[start:start + k] < 0.0))
-        start += k
-    return out
 
 
 # ------------------------------------------------------------------------------------ physics
@@ -319,7 +304,6 @@ def evaluate_garment(model_dir: str | Path, data: GarmentData, out_dir: str | Pa
     lrs = load_linear_baselines(model_dir, identity=_identity(data), device=dev)
     split = load_split(model_dir) or make_split(data, "motion")
     body_model = model.body
-    faces = body_model.faces.cpu().numpy()
     warp_device = "cuda:0" if dev.type == "cuda" else "cpu"
 
     groups = {k: _spread([i for i in v if i in data.sequences], data, max_sequences) for k, v in split.test.items()}
@@ -340,6 +324,11 @@ def evaluate_garment(model_dir: str | Path, data: GarmentData, out_dir: str | Pa
     physics_runs: list[dict] = []
     strain: dict[str, dict[str, list]] = {}
     rest = cloth_rest(data)
+    from simgen.learn.comparison.metrics import InsideCounter
+    from simgen.learn.data import body_for_identity
+
+    inside_counter = InsideCounter(body_for_identity(data.identity, body), data.skin_weights,
+                                   (data.attrs.get("solver") or {}).get("config"), warp_device)
     done = 0
     for group, ids in groups.items():
         for sid in ids:
@@ -368,7 +357,7 @@ def evaluate_garment(model_dir: str | Path, data: GarmentData, out_dir: str | Pa
             for k, f in enumerate(frames):
                 sets = {"ground_truth": s.vertices[f], **{m: preds[m][f].cpu().numpy() for m in SET_LABELS
                                                            if m != "ground_truth" and m in preds}}
-                for m, frac in _inside_fraction(sets, bv[k], faces, warp_device).items():
+                for m, frac in inside_counter.fractions(sets, bv[k]).items():
                     inside.setdefault(group, {}).setdefault(m, []).append(frac)
             if group == "held_out_motion" and len(physics_runs) < physics_sequences:
                 physics_runs.append({"fps": s.fps, "body_vertices": body_all.cpu().numpy(), "sets": {

@@ -104,14 +104,12 @@ class InsideCounter:
     """
 
     def __init__(self, body, skin_weights, solver_config: dict | None = None, device: str = "cpu"):
-        from simgen.body.parts import face_part_masks, face_parts, vertex_parts
-        from simgen.params import ContactParams
+        from simgen.dataset.quality import penetration_rule
 
         self.faces = np.asarray(body.faces)
-        self.home_parts = vertex_parts(skin_weights)
-        self.part_masks = face_part_masks(body.v_template, body.faces, face_parts(body.weights, body.faces))
-        contact = (solver_config or {}).get("contact") or {}
-        self.pinch_distance = float(contact.get("pinch_distance", ContactParams.pinch_distance))
+        rule = penetration_rule(skin_weights, body, solver_config)
+        self.home_parts, self.part_masks, self.pinch_distance = (rule["home_parts"], rule["part_masks"],
+                                                                 rule["pinch_distance"])
         self.device = device
 
     def fractions(self, sets: dict, body_vertices) -> dict[str, float]:
