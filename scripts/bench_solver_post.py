@@ -39,14 +39,13 @@ def held_out(available, split, count: int) -> list[str]:
     return [ids[k] for k in picks]
 
 
-def inside_share(points: np.ndarray, body_vertices: np.ndarray, faces: np.ndarray, stride: int, device: str) -> float:
-    """Share of the vertices [m] (T, V, 3) strictly inside the posed body [m] (T, Vb, 3), every
-    ``stride``-th frame (the winding-number query of ``simgen dataset check``)."""
-    from simgen.body.surface import project_to_surface
-
-    shares = [np.mean(project_to_surface(points[k], body_vertices[k], faces, device=device).signed_distance < 0.0)
-              for k in range(0, len(points), stride)]
-    return float(np.mean(shares))
+def inside_share(points: np.ndarray, body_vertices: np.ndarray, counter, stride: int) -> float:
+    """Share of the vertices [m] (T, V, 3) inside the posed body [m] (T, Vb, 3), every ``stride``-th
+    frame, counted as ``simgen dataset check`` counts its regular vertices (``counter``, an
+    :class:`simgen.learn.comparison.metrics.InsideCounter`; until 2026-11-29 every vertex inside by
+    the winding number counted, those at body self-intersections too)."""
+    return float(np.mean([counter.fractions({"x": points[k]}, body_vertices[k])["x"]
+                          for k in range(0, len(points), stride)]))
 
 
 def main() -> int:
@@ -65,6 +64,7 @@ def main() -> int:
 
     from simgen.dataset import open_dataset
     from simgen.learn.data import body_for_identity, load_garment_data
+    from simgen.learn.comparison.metrics import InsideCounter
     from simgen.learn.evaluate import cloth_rest, physics_terms, triangle_strain
     from simgen.learn.garment_model import load_garment_model, load_split
     from simgen.learn.solver_post import SolverPostProcess
@@ -79,7 +79,7 @@ def main() -> int:
     identity = {"garment": dict(data.identity.get("garment", {})), "body": dict(data.identity.get("body", {}))}
     model = load_garment_model(args.model, identity=identity, device=dev)
     body = body_for_identity(data.identity)
-    faces = model.body.faces.cpu().numpy()
+    counter = InsideCounter(body, data.skin_weights, data.attrs.get("solver"), warp_device)
     rest = cloth_rest(data)
 
     runs = []
@@ -97,8 +97,8 @@ def main() -> int:
         return {"physics_J_per_frame": phys,
                 "triangle_strain": float(np.mean(np.concatenate([triangle_strain(x, rest) for x in sets]))),
                 "error_cm": float(err.mean()),
-                "inside_share": float(np.mean([inside_share(x, r["body"].cpu().numpy(), faces, args.inside_stride,
-                                                            warp_device) for r, x in zip(runs, sets)]))}
+                "inside_share": float(np.mean([inside_share(x, r["body"].cpu().numpy(), counter, args.inside_stride)
+                                               for r, x in zip(runs, sets)]))}
 
     rows = {"simulation": score("ground_truth", [r["gt"] for r in runs]),
             "raw": score("model_raw", [r["raw"].cpu().numpy() for r in runs])}

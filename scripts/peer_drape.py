@@ -259,7 +259,7 @@ def summarize(series: list[dict], transition_end: int, total: int) -> dict:
             row[f"{key}_{tag}{unit}"] = series[t][key] if t < len(series) else None
     hold = series[transition_end + 1:]
     row["hem_cling_max_after_transition"] = max((m["hem_cling"] for m in hold), default=None)
-    row["sleeve_gap_max_after_transition_m"] = fit_report.arms_down_max(hold)
+    row["sleeve_gap_arms_down_max_after_transition_m"] = fit_report.arms_down_max(hold)
     row["per_frame"] = {key + unit: [m[key] for m in series] for key, unit in METRICS}
     return row
 

@@ -127,7 +127,7 @@ def test_eval_compare_writes_every_table(store, models, tmp_path, capsys):
     assert all(rows[m]["runtime"] > 0 for m in labels)
     # SnugNet's parameters: 2 GRU layers of 16 here (4 of 16 for the GRU from the CLI) and the output layer.
     assert rows["SNUG"]["size"] == pytest.approx(4e-6 * (3 * 16 * (89 + 16 + 2) + 3 * 16 * (16 + 16 + 2)
-                                                         + 17 * 3 * load_garment("tshirt_1k").num_vertices))
+                                                         + 17 * 3 * load_garment(GARMENT).num_vertices))
     assert rows["vertex-L2 GRU"]["size"] > rows["SNUG"]["size"] and rows["LBS"]["size"] == 0
     assert rows["simulation (the dataset's solver)"]["runtime"] > 0 and "(AMD Ryzen 7 2700" in md
 

@@ -281,7 +281,7 @@ def _context(ds, bm, template_ok: bool, device: str) -> _Context:
     # The solver's contact keeps cloth on its own body part where the body intersects itself: the
     # same part labels classify such cloth as at a self-intersection here.
     weights = tpl["skin_weights"] if tpl is not None else None
-    penetration = dict(device=device, **penetration_rule(weights, bm, solver_config))
+    penetration = dict(device=device, **penetration_rule(weights, bm, ds.attrs.get("solver")))
     crossings = None
     if tpl is not None:
         from simgen.garment.crossings import CrossingCounter

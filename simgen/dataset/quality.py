@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["triangle_rest_inverse", "triangle_strain", "strain_summary", "body_penetration", "penetration_rule", "DEFAULT_MAX_STRAIN",
-           "DEFAULT_MAX_DEPTH"]
+__all__ = ["triangle_rest_inverse", "triangle_strain", "strain_summary", "body_penetration", "penetration_rule",
+           "DEFAULT_MAX_STRAIN", "DEFAULT_MAX_DEPTH"]
 
 DEFAULT_MAX_STRAIN = 1.0  # [-] largest principal stretch - 1 of a healthy frame (the check's limit, the retry's trigger)
 DEFAULT_MAX_DEPTH = 1.0e-3  # [m] the solver's contract: no vertex more than 1 mm inside (self-intersections apart)
@@ -73,16 +73,18 @@ def strain_summary(positions, faces, rest_inverse) -> tuple[np.ndarray, np.ndarr
     return s.mean(axis=1), s.max(axis=1)
 
 
-def penetration_rule(skin_weights, body, solver_config: dict | None = None) -> dict:
+def penetration_rule(skin_weights, body, solver: dict | None = None) -> dict:
     """The keyword arguments of :func:`body_penetration` that make it count like the solver's
     statistics and ``simgen dataset check``: home_parts (V,) from the garment's skinning weights
     (V, 24), part_masks (Fb,) of ``body`` (a BodyModel) and the pinch distance [m] of the store's
-    solver config (``attrs["solver"]["config"]``; the default ContactParams' without one). Without
-    skinning weights (None) the body part rule is off (home_parts and part_masks None)."""
+    solver (``attrs["solver"]``: its "config", or the dict itself where it has none; the default
+    ContactParams' without one). Without skinning weights (None) the body part rule is off
+    (home_parts and part_masks None)."""
     from simgen.body.parts import face_part_masks, face_parts, vertex_parts
     from simgen.params import ContactParams
 
-    contact = (solver_config or {}).get("contact") or {}
+    solver = solver or {}
+    contact = (solver.get("config", solver) or {}).get("contact") or {}
     pinch = float(contact.get("pinch_distance", ContactParams.pinch_distance))
     if skin_weights is None:
         return {"home_parts": None, "part_masks": None, "pinch_distance": pinch}

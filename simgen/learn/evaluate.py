@@ -38,7 +38,7 @@ import torch
 from simgen._fileio import atomic_write_bytes
 from simgen.errors import InputError
 from simgen.learn.checkpoint import model_size_mb, read_config
-from simgen.learn.data import GarmentData, make_split
+from simgen.learn.data import GarmentData, body_for_identity, make_split
 from simgen.learn.features import motion_features
 from simgen.learn.garment_model import (FIT_DIR, WRINKLE_DIR, GarmentModel, StreamState, lbs_baseline, linear_baseline, load_garment_model, load_linear_baselines,
                                         load_split)
@@ -114,7 +114,6 @@ def _solver_post(data: GarmentData, body, warp_device: str, required: bool):
     """The :class:`SolverPostProcess` of ``data`` on its body; when the data lacks the solver's rest
     template, material or settings (data not read from a store): None, or the InputError if
     ``required``."""
-    from simgen.learn.data import body_for_identity
     from simgen.learn.solver_post import SolverPostProcess
 
     try:
@@ -325,10 +324,9 @@ def evaluate_garment(model_dir: str | Path, data: GarmentData, out_dir: str | Pa
     strain: dict[str, dict[str, list]] = {}
     rest = cloth_rest(data)
     from simgen.learn.comparison.metrics import InsideCounter
-    from simgen.learn.data import body_for_identity
 
-    inside_counter = InsideCounter(body_for_identity(data.identity, body), data.skin_weights,
-                                   (data.attrs.get("solver") or {}).get("config"), warp_device)
+    body_np = body_for_identity(data.identity, body)  # the numpy BodyModel (body_model is its torch twin)
+    inside_counter = InsideCounter(body_np, data.skin_weights, data.attrs.get("solver"), warp_device)
     done = 0
     for group, ids in groups.items():
         for sid in ids:
@@ -391,9 +389,7 @@ def evaluate_garment(model_dir: str | Path, data: GarmentData, out_dir: str | Pa
         metrics["solver_postprocess"] = solver_post.report()
     if physics_sequences > 0:
         try:
-            from simgen.learn.data import body_for_identity
-
-            metrics["physics"] = physics_terms(data, physics_runs, body_for_identity(data.identity, body), dev) \
+            metrics["physics"] = physics_terms(data, physics_runs, body_np, dev) \
                 if physics_runs else {"skipped": "no held-out-motion sequence"}
         except ImportError as exc:
             metrics["physics"] = {"skipped": f"simgen.physics is not available ({exc})"}

@@ -22,6 +22,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from simgen.errors import InputError
+
 __all__ = ["boundary_vertices", "mean_curvature", "curvature_error", "InsideCounter", "training_seconds",
            "generation_seconds", "SnugStepper", "LbsStepper"]
 
@@ -97,17 +99,19 @@ class InsideCounter:
     """Share of garment vertices inside the posed body, as ``simgen dataset check`` counts them.
 
     body: the BodyModel; skin_weights (V, 24): the garment's (each vertex's home body part);
-    solver_config: the store's solver config dict (its contact pinch distance); device: Warp's.
+    solver: the store's ``attrs["solver"]`` (its contact pinch distance); device: Warp's.
     A vertex is inside when :func:`simgen.dataset.quality.body_penetration` gives it a depth > 0
     (winding number) and it is not at a body self-intersection (armpits, crotch; the check's
     "regular" vertices).
     """
 
-    def __init__(self, body, skin_weights, solver_config: dict | None = None, device: str = "cpu"):
+    def __init__(self, body, skin_weights, solver: dict | None = None, device: str = "cpu"):
         from simgen.dataset.quality import penetration_rule
 
+        if skin_weights is None:
+            raise InputError("InsideCounter needs the garment's skinning weights (each vertex's body part)")
         self.faces = np.asarray(body.faces)
-        rule = penetration_rule(skin_weights, body, solver_config)
+        rule = penetration_rule(skin_weights, body, solver)
         self.home_parts, self.part_masks, self.pinch_distance = (rule["home_parts"], rule["part_masks"],
                                                                  rule["pinch_distance"])
         self.device = device

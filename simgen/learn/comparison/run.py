@@ -238,7 +238,7 @@ def _measure(data, split, groups, contestants, body_model, dev, inside_stride: i
     tb = TorchBody(body_model, device=dev)
     solver = dict(data.attrs.get("solver") or {})
     warp_device = "cuda:0" if dev.type == "cuda" else "cpu"
-    counter = M.InsideCounter(body_model, data.skin_weights, solver.get("config", solver), warp_device)
+    counter = M.InsideCounter(body_model, data.skin_weights, solver, warp_device)
     keys = [c.key for c in contestants]
     interior = ~M.boundary_vertices(data.faces, data.num_vertices)
     clip_ids = pick_clips(groups, data)
