@@ -84,9 +84,10 @@ def one_step(tmp_path_factory, body):
 # Frame 2, the first after the protocol's rest, fails since the T-shirt's narrower sleeves
 # (2026-11-29): six contact vertices 0.7-1.4 mm from the body (torso and arm, no other body part
 # within 16 mm) keep residuals of 1e-4 to 7e-3 N, up to 15% of their contact force, with 8 or 20
-# Newton iterations alike. At that frame's positions the solver's contact kernel (without the part
-# rule) and the torch term agree to 1e-16, so the gap lies elsewhere in that step (the part rule's
-# choice held from the step's start, or the body the step saw). Not yet explained; frames 3-5 hold.
+# Newton iterations alike. At that frame's positions the solver's contact kernel and the torch
+# term agree to 1e-16, with the part rule's choice made there or at the previous frame, and the
+# recorded body of that frame fits 100x better than its neighbours', so neither the contact term
+# nor the body's timing explains it. Not yet explained; frames 3-5 hold.
 @pytest.mark.parametrize("t", [pytest.param(2, marks=pytest.mark.xfail(strict=True, reason=(
     "six contact vertices keep a residual at the first animated frame (comment above)"))), 3, 4, 5])
 def test_solver_frame_is_a_stationary_point_of_the_incremental_potential(one_step, t):
