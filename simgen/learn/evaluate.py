@@ -38,6 +38,7 @@ import torch
 from simgen._fileio import atomic_write_bytes
 from simgen.errors import InputError
 from simgen.learn.checkpoint import model_size_mb, read_config
+from simgen.learn.comparison.metrics import InsideCounter
 from simgen.learn.data import GarmentData, body_for_identity, make_split
 from simgen.learn.features import motion_features
 from simgen.learn.garment_model import (FIT_DIR, WRINKLE_DIR, GarmentModel, StreamState, lbs_baseline, linear_baseline, load_garment_model, load_linear_baselines,
@@ -323,8 +324,6 @@ def evaluate_garment(model_dir: str | Path, data: GarmentData, out_dir: str | Pa
     physics_runs: list[dict] = []
     strain: dict[str, dict[str, list]] = {}
     rest = cloth_rest(data)
-    from simgen.learn.comparison.metrics import InsideCounter
-
     body_np = body_for_identity(data.identity, body)  # the numpy BodyModel (body_model is its torch twin)
     inside_counter = InsideCounter(body_np, data.skin_weights, data.attrs.get("solver"), warp_device)
     done = 0

@@ -111,9 +111,7 @@ class InsideCounter:
         if skin_weights is None:
             raise InputError("InsideCounter needs the garment's skinning weights (each vertex's body part)")
         self.faces = np.asarray(body.faces)
-        rule = penetration_rule(skin_weights, body, solver)
-        self.home_parts, self.part_masks, self.pinch_distance = (rule["home_parts"], rule["part_masks"],
-                                                                 rule["pinch_distance"])
+        self.rule = penetration_rule(skin_weights, body, solver)
         self.device = device
 
     def fractions(self, sets: dict, body_vertices) -> dict[str, float]:
@@ -122,11 +120,10 @@ class InsideCounter:
 
         names = list(sets)
         points = np.concatenate([np.asarray(sets[n], dtype=np.float32) for n in names])
-        depth, self_hit, _ = body_penetration(points, body_vertices, self.faces, device=self.device,
-                                              home_parts=np.tile(self.home_parts, len(names)),
-                                              part_masks=self.part_masks, pinch_distance=self.pinch_distance)
+        rule = {**self.rule, "home_parts": np.tile(self.rule["home_parts"], len(names))}
+        depth, self_hit, _ = body_penetration(points, body_vertices, self.faces, device=self.device, **rule)
         regular = (depth > 0.0) & ~self_hit
-        v = len(self.home_parts)
+        v = len(self.rule["home_parts"])
         return {n: float(regular[k * v:(k + 1) * v].mean()) for k, n in enumerate(names)}
 
 
