@@ -107,7 +107,12 @@ def test_train_eval_compare_through_the_cli(store, tmp_path, capsys):
     frames = sum(c["frames"] for c in clips.values())
     assert sum(c["frames"] * c["mean_error_cm"]["model"] for c in clips.values()) / frames == pytest.approx(
         group["error_cm"]["model"], rel=1e-6)
-    assert "mean triangle strain" in out and "held-out clips" in out
+    # the clips' inside shares, weighted by their tested frames, average back to the group's too
+    tested = {c: sum(r["inside_frames"] for r in metrics["sequences"].values() if r["motion"] == c) for c in clips}
+    for m in ("ground_truth", "model_raw", "model"):
+        assert sum(tested[c] * clips[c]["inside_percent"][m] for c in clips) / sum(tested.values()) == pytest.approx(
+            group["inside_percent"][m], rel=1e-6, abs=1e-9)
+    assert "mean triangle strain" in out and "held-out clips" in out and "inside raw" in out
     # On the (tiny) training set the model fits the simulations far better than LBS of the template.
     train = metrics["groups"]["train"]["error_cm"]
     assert train["model_raw"] < 0.5 * train["lbs"]
@@ -184,8 +189,10 @@ def test_summary_columns_stay_apart_for_a_diverged_clip():
     from simgen.learn.evaluate import format_summary
 
     strain = {"ground_truth": 3.7e-4, "model": 0.0236, "model_relaxed": 0.00227, "model_solver": 1.6951e20}
+    inside = {"ground_truth": 0.155, "model_raw": 11.704, "model": 0.001}
     metrics = {"groups": {"held_out_motion": {"error_cm": {}, "per_clip": {
-        "lunge": {"mean_error_cm": {"model": 1.286, "lbs": 3.233}, "triangle_strain": strain}}}}}
+        "lunge": {"mean_error_cm": {"model": 1.286, "lbs": 3.233}, "triangle_strain": strain,
+                  "inside_percent": inside}}}}}
     row = next(line for line in format_summary(metrics).splitlines() if line.startswith("lunge"))
-    assert [float(v) for v in row.split()[1:]] == pytest.approx([1.286, 3.233, 3.7e-4, 0.0236, 0.00227, 1.6951e20],
-                                                                rel=1e-3)
+    assert [float(v) for v in row.split()[1:]] == pytest.approx(
+        [1.286, 3.233, 3.7e-4, 0.0236, 0.00227, 1.6951e20, 0.155, 11.704, 0.001], rel=1e-3)

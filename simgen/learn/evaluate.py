@@ -185,18 +185,20 @@ def triangle_strain(positions, rest) -> np.ndarray:
 
 
 def _per_clip(per_seq: dict, group: str) -> dict:
-    """{motion: {sequences, frames, mean_error_cm, triangle_strain}} of one group's sequences, each a
-    frame-weighted mean over the motion's sequences (one per shape)."""
+    """{motion: {sequences, frames, mean_error_cm, triangle_strain, inside_percent}} of one group's
+    sequences, each a mean over the motion's sequences (one per shape) weighted by their frames (by
+    their tested frames for inside_percent)."""
     clips: dict[str, list] = {}
     for row in per_seq.values():
         if row["group"] == group:
             clips.setdefault(row["motion"], []).append(row)
     out = {}
     for motion, rows in sorted(clips.items()):
-        w = np.array([r["frames"] for r in rows], dtype=float)
-        out[motion] = {"sequences": len(rows), "frames": int(w.sum()), **{
-            key: {m: float(np.dot(w, [r[key][m] for r in rows]) / w.sum()) for m in rows[0][key]}
-            for key in ("mean_error_cm", "triangle_strain")}}
+        out[motion] = {"sequences": len(rows), "frames": int(sum(r["frames"] for r in rows))}
+        for key, weight in (("mean_error_cm", "frames"), ("triangle_strain", "frames"),
+                            ("inside_percent", "inside_frames")):
+            w = np.array([r[weight] for r in rows], dtype=float)
+            out[motion][key] = {m: float(np.dot(w, [r[key][m] for r in rows]) / w.sum()) for m in rows[0][key]}
     return out
 
 
@@ -351,11 +353,15 @@ def evaluate_garment(model_dir: str | Path, data: GarmentData, out_dir: str | Pa
             # Vertices inside the body, every inside_stride-th frame.
             frames = list(range(0, s.num_frames, max(1, inside_stride)))
             bv = body_all[frames].cpu().numpy()
+            seq_inside: dict[str, list] = {}
             for k, f in enumerate(frames):
                 sets = {"ground_truth": s.vertices[f], **{m: preds[m][f].cpu().numpy() for m in SET_LABELS
                                                            if m != "ground_truth" and m in preds}}
                 for m, frac in inside_counter.fractions(sets, bv[k]).items():
+                    seq_inside.setdefault(m, []).append(frac)
                     inside.setdefault(group, {}).setdefault(m, []).append(frac)
+            per_seq[sid]["inside_frames"] = len(frames)
+            per_seq[sid]["inside_percent"] = {m: 100.0 * float(np.mean(v)) for m, v in seq_inside.items()}
             if group == "held_out_motion" and len(physics_runs) < physics_sequences:
                 physics_runs.append({"fps": s.fps, "body_vertices": body_all.cpu().numpy(), "sets": {
                     "ground_truth": s.vertices, **{m: preds[m].cpu().numpy() for m in SET_LABELS if m in preds}}})
@@ -535,12 +541,14 @@ def format_summary(metrics: dict) -> str:
     if clips:
         lines.append("")
         lines.append(f"{'held-out clips (training shapes)':40s}{'ours [cm]':>14s}{'LBS [cm]':>14s}"
-                     f"{'strain sim.':>14s}{'strain ours':>14s}{'ours, metric':>14s}{'ours, solver':>14s}")
+                     f"{'strain sim.':>14s}{'strain ours':>14s}{'ours, metric':>14s}{'ours, solver':>14s}"
+                     f"{'inside sim.':>14s}{'inside raw':>14s}{'inside ours':>14s}")
         for motion, row in clips.items():
-            err, st = row["mean_error_cm"], row["triangle_strain"]
+            err, st, ins = row["mean_error_cm"], row["triangle_strain"], row.get("inside_percent", {})
             lines.append(f"{motion:40s}{_cell(err['model'], 14, 3)}{_cell(err['lbs'], 14, 3)}" + "".join(
                 _cell(st.get(k, float("nan")), 14, 5) for k in ("ground_truth", "model", "model_relaxed",
-                                                                 "model_solver")))
+                                                                 "model_solver")) + "".join(
+                _cell(ins.get(k, float("nan")), 14, 3) for k in ("ground_truth", "model_raw", "model")))
     phys = metrics.get("physics") or {}
     rows = [m for m in SET_LABELS if isinstance(phys.get(m), dict)]
     if rows:
