@@ -137,6 +137,21 @@ def test_cg_profile_takes_a_newton_system_out(tmp_path):
         assert r[key] >= 1
 
 
+def test_bvh_quality_counts_node_tests_and_the_lattice_costs_the_radix_tree(tmp_path):
+    sys.path.insert(0, str(REPO / "scripts"))
+    from bvh_quality import median_split, tests_per_query
+
+    # two disjoint boxes: each query tests the root and both leaves
+    lo, hi = np.array([[0.0, 0, 0], [2.0, 0, 0]]), np.array([[1.0, 1, 1], [3.0, 1, 1]])
+    assert tests_per_query(lo, hi, median_split(0.5 * (lo + hi))) == 3
+    one = run_script("bvh_quality.py", "--garment", "tshirt_1k", "--instances", "1", out=tmp_path / "one.json")
+    many = run_script("bvh_quality.py", "--garment", "tshirt_1k", "--instances", "64", out=tmp_path / "many.json")
+    t1, t64 = one["tests_per_query"], many["tests_per_query"]
+    assert t1["radix_own_bounds"] == t1["radix_lattice_bounds"] == t64["radix_own_bounds"]
+    assert t64["radix_lattice_bounds"] > 2 * t64["radix_own_bounds"]
+    assert t64["median_split"] < 1.5 * t64["radix_own_bounds"]
+
+
 def test_softtissue_validate_reports_regions_and_modes(tmp_path):
     r = _run_json("softtissue_validate.py", "--device", "cpu", "--clips", "jump:0:0.1", "--shapes", "0",
                   out=tmp_path / "st.json")

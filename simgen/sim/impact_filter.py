@@ -9,8 +9,8 @@ crosses nothing, by the route of Bridson, Fedkiw and Anderson (2002)'s final saf
 time of impact of Li et al. (2021)'s additive CCD:
 
 1. Candidates: the swept box of every vertex against the swept boxes of the triangles, and the swept
-   box of every edge against those of the edges (two BVHs, refit each substep), same instance only,
-   primitives that share a vertex skipped.
+   box of every edge against those of the edges (two BVHs, built once by SAH and refit each
+   substep; see ``BVH_CONSTRUCTOR``), same instance only, primitives that share a vertex skipped.
 2. Time of impact of each vertex-triangle and edge-edge pair on the straight paths x0 -> x1, by
    additive CCD: advance t by (1 - s) d / l_p, where d is the pair's distance at t and l_p bounds
    the pair's relative displacement over the whole path, until the distance has shrunk below
@@ -59,7 +59,7 @@ import warp as wp
 
 from simgen.body.surface_query import contact_funcs
 from simgen.garment.mesh import unique_edges
-from simgen.sim.warp_toolkit import instance_offsets, module_name, scalar_types
+from simgen.sim.warp_toolkit import BVH_CONSTRUCTOR, instance_offsets, module_name, scalar_types
 
 __all__ = ["ImpactFilter", "impact_kernels"]
 
@@ -368,7 +368,7 @@ class ImpactFilter:
             hi = wp.zeros(elements.shape[0], dtype=wp.vec3, device=dev)
             self._boxes(rest, rest, elements, lo, hi)
             # Built once on the rest shape (its topology follows the garment), refit afterwards.
-            self._bvhs.append((elements, lo, hi, wp.Bvh(lo, hi)))
+            self._bvhs.append((elements, lo, hi, wp.Bvh(lo, hi, constructor=BVH_CONSTRUCTOR)))
 
     def touch_outputs(self) -> dict:
         """The keyword arguments of :meth:`BodyCollider.project` that fill this filter's touching

@@ -39,7 +39,7 @@ import numpy as np
 import warp as wp
 
 from simgen.params import SelfContactParams  # declared with the other terms' parameters, Warp-free
-from simgen.sim.warp_toolkit import instance_offsets, module_name, resolve_outputs, scalar_types
+from simgen.sim.warp_toolkit import BVH_CONSTRUCTOR, instance_offsets, module_name, resolve_outputs, scalar_types
 from simgen.body.surface_query import contact_funcs
 from simgen.garment.mesh import unique_edges
 
@@ -218,7 +218,7 @@ class SelfContactSet:
         self.points = wp.array(rest.astype(np.float32), dtype=wp.vec3, device=dev)
         flat = wp.array(np.asarray(model.host.triangles, dtype=np.int32).reshape(-1), dtype=wp.int32, device=dev)
         self._indices = flat  # the BVH keeps a reference; it must outlive the mesh
-        self.mesh = wp.Mesh(points=self.points, indices=flat)
+        self.mesh = wp.Mesh(points=self.points, indices=flat, bvh_constructor=BVH_CONSTRUCTOR)
         self.candidate = wp.zeros((n, params.max_candidates), dtype=wp.int32, device=dev)
         self.count = wp.zeros(n, dtype=wp.int32, device=dev)
         edges = unique_edges(np.asarray(model.host.triangles)).astype(np.int32)
@@ -226,7 +226,7 @@ class SelfContactSet:
         self._lowers = wp.zeros(len(edges), dtype=wp.vec3, device=dev)
         self._uppers = wp.zeros(len(edges), dtype=wp.vec3, device=dev)
         self._edge_boxes(model.rest_positions)
-        self.edge_bvh = wp.Bvh(self._lowers, self._uppers)
+        self.edge_bvh = wp.Bvh(self._lowers, self._uppers, constructor=BVH_CONSTRUCTOR)
         self.edge_candidate = wp.zeros((len(edges), params.max_candidates), dtype=wp.int32, device=dev)
         self.edge_count = wp.zeros(len(edges), dtype=wp.int32, device=dev)
 
