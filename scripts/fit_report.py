@@ -87,6 +87,7 @@ def variants() -> dict:
         "cotton": ({"material": "cotton"}, {}),
         "no_projection": ({}, {"project": False}),
         "preset": ({"material": "interlock"}, preset),
+        "preset_newton_1": ({"material": "interlock"}, {**preset, "newton_iterations": 1}),
         "preset_newton_2": ({"material": "interlock"}, {**preset, "newton_iterations": 2}),
     }
 
