@@ -15,8 +15,9 @@ node boxes the traversal tests:
   (the LBVH of one instance);
 - ``radix_lattice_bounds``: the same codes normalised over the lattice of ``--instances`` (the
   LBVH of a batch);
-- ``median_split``: a top-down split at the median centre along the longest axis (Warp's host
-  "median" build; its "sah" build, which the simulation uses, does no worse).
+- ``median_split``: a top-down split at the median centre along the longest axis of the node's
+  bounds (Warp's host "median" build; the simulation uses its "sah" build, which places splits by
+  the surface-area cost instead and is not emulated here).
 
 Traversal work per query is proportional to these counts; the pair tests after it are the same.
 """
@@ -47,18 +48,21 @@ def edge_boxes(garment: str, motion: float = 1.0e-3, pad: float = 1.0e-4, seed: 
 
 
 def morton(centres: np.ndarray, lower: np.ndarray, extent: np.ndarray) -> np.ndarray:
-    """30-bit Morton codes of centres (E, 3) normalised over [lower, lower + extent]."""
-    q = np.clip(((centres - lower) / extent * 2 ** MORTON_BITS).astype(np.int64), 0, 2 ** MORTON_BITS - 1)
+    """30-bit Morton codes (E,) of box centres [m], (E, 3), normalised over [lower, lower + extent
+    + 0.1 mm] as Warp's CUDA LBVH does (warp/native/bvh.cu, morton3: z in each triple's top bit)."""
+    q = np.clip(((centres - lower) / (extent + 1.0e-4) * 2 ** MORTON_BITS).astype(np.int64),
+                0, 2 ** MORTON_BITS - 1)
     code = np.zeros(len(q), dtype=np.int64)
     for b in range(MORTON_BITS):
         for axis in range(3):
-            code |= ((q[:, axis] >> b) & 1) << (3 * b + 2 - axis)
+            code |= ((q[:, axis] >> b) & 1) << (3 * b + axis)
     return code
 
 
 def tests_per_query(lo: np.ndarray, hi: np.ndarray, split) -> float:
-    """Mean node boxes tested per query (every box as a query) in the tree that ``split`` builds:
-    split(items) -> (left items, right items) or None for a leaf."""
+    """Mean node boxes tested per query in the tree that ``split`` builds over the boxes lo, hi [m],
+    (E, 3) each, every box also a query; split(items) -> (left items, right items), or None for a
+    leaf."""
     total = 0
 
     def visit(items: np.ndarray, queries: np.ndarray) -> None:
@@ -76,7 +80,8 @@ def tests_per_query(lo: np.ndarray, hi: np.ndarray, split) -> float:
 
 
 def radix_split(code: np.ndarray):
-    """Karras's split: at the highest bit where the range's first and last codes differ (halves on ties)."""
+    """Karras's split of items sorted by (code, index): at the highest bit where the range's first and
+    last codes differ; a run of equal codes is halved (Warp breaks such ties by its own rule)."""
     def split(items):
         if len(items) == 1:
             return None
@@ -91,13 +96,16 @@ def radix_split(code: np.ndarray):
     return split
 
 
-def median_split(centres: np.ndarray):
+def median_split(lo: np.ndarray, hi: np.ndarray):
+    """Top-down split at the median box centre along the longest axis of the node's bounds (Warp's
+    host "median" build); boxes lo, hi [m], (E, 3)."""
+    centres = 0.5 * (lo + hi)
+
     def split(items):
         if len(items) == 1:
             return None
-        c = centres[items]
-        axis = int(np.argmax(c.max(axis=0) - c.min(axis=0)))
-        items = items[np.argsort(c[:, axis], kind="stable")]
+        axis = int(np.argmax(hi[items].max(axis=0) - lo[items].min(axis=0)))
+        items = items[np.argsort(centres[items, axis], kind="stable")]
         return items[:len(items) // 2], items[len(items) // 2:]
     return split
 
@@ -117,14 +125,16 @@ def main() -> int:
     offsets = instance_offsets(args.instances).astype(np.float64)
     own_lo, own_hi = lo.min(axis=0), hi.max(axis=0)
     lattice_lo, lattice_hi = own_lo + offsets.min(axis=0), own_hi + offsets.max(axis=0)
+    own_codes = morton(centres, own_lo, own_hi - own_lo)
+    lattice_codes = morton(centres, lattice_lo, lattice_hi - lattice_lo)
     row = {
-        "benchmark": "bvh_quality", "commit": commit(), "garment": args.garment, "edges": len(lo), "instances": args.instances,
-        "lattice_extent_m": (lattice_hi - lattice_lo).round(3).tolist(),
+        "benchmark": "bvh_quality", "commit": commit(), "garment": args.garment, "edges": len(lo),
+        "instances": args.instances, "lattice_extent_m": (lattice_hi - lattice_lo).round(3).tolist(),
+        "unique_codes": {"own_bounds": len(np.unique(own_codes)), "lattice_bounds": len(np.unique(lattice_codes))},
         "tests_per_query": {
-            "radix_own_bounds": tests_per_query(lo, hi, radix_split(morton(centres, own_lo, own_hi - own_lo))),
-            "radix_lattice_bounds": tests_per_query(
-                lo, hi, radix_split(morton(centres, lattice_lo, lattice_hi - lattice_lo))),
-            "median_split": tests_per_query(lo, hi, median_split(centres)),
+            "radix_own_bounds": tests_per_query(lo, hi, radix_split(own_codes)),
+            "radix_lattice_bounds": tests_per_query(lo, hi, radix_split(lattice_codes)),
+            "median_split": tests_per_query(lo, hi, median_split(lo, hi)),
         },
     }
     text = json.dumps(row, indent=1)

@@ -139,11 +139,18 @@ def test_cg_profile_takes_a_newton_system_out(tmp_path):
 
 def test_bvh_quality_counts_node_tests_and_the_lattice_costs_the_radix_tree(tmp_path):
     sys.path.insert(0, str(REPO / "scripts"))
-    from bvh_quality import median_split, tests_per_query
-
+    try:
+        from bvh_quality import median_split, morton, tests_per_query
+    finally:
+        sys.path.remove(str(REPO / "scripts"))
     # two disjoint boxes: each query tests the root and both leaves
     lo, hi = np.array([[0.0, 0, 0], [2.0, 0, 0]]), np.array([[1.0, 1, 1], [3.0, 1, 1]])
-    assert tests_per_query(lo, hi, median_split(0.5 * (lo + hi))) == 3
+    assert tests_per_query(lo, hi, median_split(lo, hi)) == 3
+    # Warp's morton3: x in each triple's lowest bit, z in its highest
+    unit = np.ones(3)
+    assert morton(np.array([[0.5 / 1024, 0, 0], [0, 0, 0.5 / 1024], [1.0, 1.0, 1.0]]), np.zeros(3), unit).tolist() == [
+        0, 0, 2 ** 30 - 1]
+    assert morton(np.array([[1.5 / 1024, 0, 0], [0, 0, 1.5 / 1024]]), np.zeros(3), unit).tolist() == [1, 4]
     one = run_script("bvh_quality.py", "--garment", "tshirt_1k", "--instances", "1", out=tmp_path / "one.json")
     many = run_script("bvh_quality.py", "--garment", "tshirt_1k", "--instances", "64", out=tmp_path / "many.json")
     t1, t64 = one["tests_per_query"], many["tests_per_query"]

@@ -108,7 +108,8 @@ def test_train_eval_compare_through_the_cli(store, tmp_path, capsys):
     assert sum(c["frames"] * c["mean_error_cm"]["model"] for c in clips.values()) / frames == pytest.approx(
         group["error_cm"]["model"], rel=1e-6)
     # the clips' inside shares, weighted by their tested frames, average back to the group's too
-    tested = {c: sum(r["inside_frames"] for r in metrics["sequences"].values() if r["motion"] == c) for c in clips}
+    tested = {c: sum(r["inside_frames"] for r in metrics["sequences"].values()
+                     if r["motion"] == c and r["group"] == "held_out_motion") for c in clips}
     for m in ("ground_truth", "model_raw", "model"):
         assert sum(tested[c] * clips[c]["inside_percent"][m] for c in clips) / sum(tested.values()) == pytest.approx(
             group["inside_percent"][m], rel=1e-6, abs=1e-9)
@@ -182,6 +183,22 @@ def test_train_cli_validation_options_reach_the_split_and_the_run(store, tmp_pat
     code, _, err = run(["train", "wrinkle", "--dataset", str(store), "--out", str(tmp_path / "b"), "--epochs", "2",
                         "--hidden", "8", "--patience", "3"], capsys)
     assert code != 0 and "patience needs a split with validation motions" in err
+
+
+def test_per_clip_weights_errors_by_frames_and_inside_shares_by_tested_frames():
+    from simgen.learn.evaluate import _per_clip
+
+    def row(group, frames, tested, err, inside):
+        return {"group": group, "motion": "hop", "frames": frames, "inside_frames": tested,
+                "mean_error_cm": {"model": err}, "triangle_strain": {"model": 0.0}, "inside_percent": {"model": inside}}
+
+    seqs = {"a": row("held_out_motion", 10, 2, 1.0, 10.0), "b": row("held_out_motion", 30, 6, 3.0, 2.0),
+            "c": row("train", 100, 50, 9.0, 90.0)}
+    seqs["b"]["inside_frames"] = 2        # tested frames not in proportion to frames
+    (clip,) = _per_clip(seqs, "held_out_motion").values()
+    assert clip["sequences"] == 2 and clip["frames"] == 40
+    assert clip["mean_error_cm"]["model"] == pytest.approx((10 * 1.0 + 30 * 3.0) / 40)
+    assert clip["inside_percent"]["model"] == pytest.approx((2 * 10.0 + 2 * 2.0) / 4)
 
 
 def test_summary_columns_stay_apart_for_a_diverged_clip():
