@@ -192,9 +192,9 @@ def test_per_clip_weights_errors_by_frames_and_inside_shares_by_tested_frames():
         return {"group": group, "motion": "hop", "frames": frames, "inside_frames": tested,
                 "mean_error_cm": {"model": err}, "triangle_strain": {"model": 0.0}, "inside_percent": {"model": inside}}
 
-    seqs = {"a": row("held_out_motion", 10, 2, 1.0, 10.0), "b": row("held_out_motion", 30, 6, 3.0, 2.0),
+    # tested frames not in proportion to frames (2 and 2 of 10 and 30), and a train row left out
+    seqs = {"a": row("held_out_motion", 10, 2, 1.0, 10.0), "b": row("held_out_motion", 30, 2, 3.0, 2.0),
             "c": row("train", 100, 50, 9.0, 90.0)}
-    seqs["b"]["inside_frames"] = 2        # tested frames not in proportion to frames
     (clip,) = _per_clip(seqs, "held_out_motion").values()
     assert clip["sequences"] == 2 and clip["frames"] == 40
     assert clip["mean_error_cm"]["model"] == pytest.approx((10 * 1.0 + 30 * 3.0) / 40)

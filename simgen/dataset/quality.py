@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["triangle_rest_inverse", "triangle_strain", "strain_summary", "body_penetration", "penetration_rule",
-           "DEFAULT_MAX_STRAIN", "DEFAULT_MAX_DEPTH"]
+__all__ = ["triangle_rest_inverse", "triangle_strain", "strain_summary", "body_penetration",
+           "penetration_rule", "DEFAULT_MAX_STRAIN", "DEFAULT_MAX_DEPTH"]
 
 DEFAULT_MAX_STRAIN = 1.0  # [-] largest principal stretch - 1 of a healthy frame (the check's limit, the retry's trigger)
 DEFAULT_MAX_DEPTH = 1.0e-3  # [m] the solver's contract: no vertex more than 1 mm inside (self-intersections apart)
