@@ -243,7 +243,7 @@ def impact_kernels(scalar) -> SimpleNamespace:
         w = mass[i]
         if pinned[i] != 0:
             w = w * scalar(1.0e12)
-        elif touching[i] != 0:
+        elif touching[i] == 1:
             w = w * scalar(1.0e6)
         wp.atomic_add(weight, r, w)
         wp.atomic_add(motion, r, w * (target[i] - x0[i]))
@@ -253,13 +253,27 @@ def impact_kernels(scalar) -> SimpleNamespace:
     def move_zones(x0: wp.array(dtype=vec3), target: wp.array(dtype=vec3), target_v: wp.array(dtype=vec3),
                    pinned: wp.array(dtype=wp.int32), zone: wp.array(dtype=wp.int32), size: wp.array(dtype=wp.int32),
                    weight: wp.array(dtype=scalar), motion: wp.array(dtype=vec3), correction: wp.array(dtype=vec3),
-                   velocity: wp.array(dtype=vec3), x: wp.array(dtype=vec3), v: wp.array(dtype=vec3)):
-        # A vertex alone, or pinned, keeps its own motion; a zone translates as one body.
+                   velocity: wp.array(dtype=vec3), touching: wp.array(dtype=wp.int32), normal: wp.array(dtype=vec3),
+                   plane: wp.array(dtype=scalar), speed: wp.array(dtype=scalar), x: wp.array(dtype=vec3),
+                   v: wp.array(dtype=vec3)):
+        # A vertex alone, or pinned, keeps its own motion; a zone translates as one body, and a
+        # member that the translation leaves inside its body half-space (touching or near the body:
+        # a zone squeezed between two body parts) is pushed onto it alone, along the body's normal.
         i = wp.tid()
         r = zone[i]
         if size[r] > 1 and pinned[i] == 0:
-            x[i] = x0[i] + motion[r] / weight[r] + correction[r]
-            v[i] = velocity[r] / weight[r]
+            p = x0[i] + motion[r] / weight[r] + correction[r]
+            vi = velocity[r] / weight[r]
+            if touching[i] != 0:
+                n = normal[i]
+                short = plane[i] - wp.dot(n, p)
+                if short > zero:
+                    p = p + short * n
+                if short > zero or touching[i] == 1:
+                    # Not into the body faster than its surface moves (relative to it, as the projection).
+                    vi = vi + wp.max(speed[i] - wp.dot(vi, n), zero) * n
+            x[i] = p
+            v[i] = vi
         else:
             x[i] = target[i]
             v[i] = target_v[i]
@@ -272,7 +286,7 @@ def impact_kernels(scalar) -> SimpleNamespace:
         # Each touching member of a zone whose translation would leave it inside its body half-space
         # adds its projection onto that half-space (averaged per zone by body_step).
         i = wp.tid()
-        if touching[i] == 0:
+        if touching[i] != 1:
             return
         r = zone[i]
         if size[r] <= 1:
@@ -348,6 +362,7 @@ class ImpactFilter:
         self.touching = wp.zeros(n, dtype=wp.int32, device=dev)
         self.touch_normal = wp.zeros(n, dtype=model.vec3, device=dev)
         self.touch_plane = wp.zeros(n, dtype=model.scalar, device=dev)
+        self.touch_speed = wp.zeros(n, dtype=model.scalar, device=dev)
         self._correction = wp.zeros(n, dtype=model.vec3, device=dev)
         self._push = wp.zeros(n, dtype=model.vec3, device=dev)
         self._pushes = wp.zeros(n, dtype=wp.int32, device=dev)
@@ -373,7 +388,8 @@ class ImpactFilter:
     def touch_outputs(self) -> dict:
         """The keyword arguments of :meth:`BodyCollider.project` that fill this filter's touching
         vertices and their half-spaces."""
-        return {"touching": self.touching, "touch_normal": self.touch_normal, "touch_plane": self.touch_plane}
+        return {"touching": self.touching, "touch_normal": self.touch_normal, "touch_plane": self.touch_plane,
+                "touch_speed": self.touch_speed}
 
     def _boxes(self, x0, x1, elements, lo, hi) -> None:
         m = self.model
@@ -417,5 +433,5 @@ class ImpactFilter:
                       inputs=[self._push, self._pushes, self._correction])
         wp.launch(k.move_zones, dim=m.num_vertices, device=m.device, inputs=[
             x0, self._target, self._target_v, m.vertex_pinned, self._zone, self._size, self._weight, self._motion,
-            self._correction, self._velocity, x, state.velocities])
+            self._correction, self._velocity, *self.touch_outputs().values(), x, state.velocities])
         wp.launch(k.next_round, dim=1, device=m.device, inputs=[self._round, self.rounds, self._pending])
