@@ -1,10 +1,13 @@
 """Self-collision on and off in the same run: stepping time, crossing edges and body depth.
 
-N instances of a garment on the open body doing one library motion (betas 1 = 0, 0.125, ...),
-with a preset's solver settings (default thesis-tshirt), through :func:`simgen.sim.simulate_batch`
+N instances of a garment on the open body doing one library motion (``--shapes axis``: betas 1 =
+0, 0.125, ...; ``--shapes bench``: bench_solver.py's shapes, the first four components uniform in
+[-2, 2]), with a preset's solver settings (default thesis-tshirt; ``--preset none``: the solver's
+defaults at 10 substeps), through :func:`simgen.sim.simulate_batch`
 once without and once with self-contact (repulsion + impact filter). Per run: wall time, the
 stepping time per output frame (first and last tenth of the clip), output frames with crossing
-edges, the deepest regular vertex inside the body. ``--variants`` runs self-contact with other
+edges, the deepest regular vertex inside the body (also per instance, and how many instances pass 1
+and 3 mm). ``--variants`` runs self-contact with other
 parameters too (``thickness=3e-3,stiffness=1e5``: fields of SelfContactParams); ``--cg-iterations``
 overrides the preset's PCG cap. With ``--profile`` the first self-contact run is repeated without
 CUDA graphs and every call is synchronised and timed: the impact filter's ms per substep and its
@@ -27,27 +30,37 @@ import numpy as np
 import warp as wp
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_solver import commit  # noqa: E402
+from bench_solver import commit, shape_batch  # noqa: E402
 
 
-def run(garment, body, motion, n, frames, cfg):
+def shapes(kind: str, n: int, num_betas: int) -> np.ndarray:
+    """(n, B) betas of the batch: 'axis' (beta 1 = 0, 0.125, ...) or 'bench' (bench_solver.py's)."""
+    if kind == "bench":
+        return shape_batch(n, num_betas)
+    return np.array([[0.0, 0.125 * i] for i in range(n)])
+
+
+def run(garment, body, motion, n, frames, cfg, kind="axis"):
     from simgen.sim import SimulationJob, simulate_batch
 
-    jobs = [SimulationJob(motion, betas=[0.0, 0.125 * i], frames=frames) for i in range(n)]
+    jobs = [SimulationJob(motion, betas=b, frames=frames) for b in shapes(kind, n, body.num_betas)]
     t = time.perf_counter()
     results = simulate_batch(garment, body, jobs, cfg)
     wall = time.perf_counter() - t
     step = np.asarray(results[0].stats["step_time"], float)[1:] * 1e3   # output frame 0 takes no step
     tenth = max(1, len(step) // 10)
     crossing = np.concatenate([np.asarray(r.stats["crossing_edges"]) for r in results])
-    return {"wall_s": round(wall, 2), "step_ms_first_tenth": round(float(step[:tenth].mean()), 1),
+    depth = [round(1e3 * float(np.max(r.stats["max_depth_regular"])), 2) for r in results]
+    return {"depth_regular_mm_per_instance": depth,
+            "instances_deeper_than_1_3_mm": [int(sum(d > 1.0 for d in depth)), int(sum(d > 3.0 for d in depth))],
+            "wall_s": round(wall, 2), "step_ms_first_tenth": round(float(step[:tenth].mean()), 1),
             "step_ms_last_tenth": round(float(step[-tenth:].mean()), 1),
             "frames_with_crossings": int((crossing > 0).sum()), "frames": int(crossing.size),
             "max_crossing_edges": int(crossing.max()),
             "max_depth_regular_mm": round(1e3 * max(float(np.max(r.stats["max_depth_regular"])) for r in results), 2)}
 
 
-def profile(garment, body, motion, n, frames, cfg) -> dict:
+def profile(garment, body, motion, n, frames, cfg, kind="axis") -> dict:
     """The self-contact run without graphs, the impact filter timed per call (synchronised)."""
     from simgen.sim import impact_filter
 
@@ -63,7 +76,7 @@ def profile(garment, body, motion, n, frames, cfg) -> dict:
 
     impact_filter.ImpactFilter.apply = timed
     try:
-        run(garment, body, motion, n, frames, replace(cfg, cuda_graph=False))
+        run(garment, body, motion, n, frames, replace(cfg, cuda_graph=False), kind)
     finally:
         impact_filter.ImpactFilter.apply = original
     quarters = []
@@ -77,7 +90,9 @@ def profile(garment, body, motion, n, frames, cfg) -> dict:
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--device", default=None)
-    p.add_argument("--preset", default="thesis-tshirt", help="dataset preset whose solver settings are used")
+    p.add_argument("--preset", default="thesis-tshirt",
+                   help="dataset preset whose solver settings are used ('none': the solver's defaults)")
+    p.add_argument("--shapes", choices=("axis", "bench"), default="axis", help="the batch's betas (module doc)")
     p.add_argument("--garment", default="tshirt")
     p.add_argument("--motion", default="run")
     p.add_argument("-n", type=int, default=16, help="instances in the batch")
@@ -95,7 +110,9 @@ def main() -> None:
     from simgen.motion import load_motion
     from simgen.params import SelfContactParams
 
-    cfg = load_spec(a.preset).solver_config()
+    from simgen.sim import SimulationConfig
+
+    cfg = SimulationConfig(substeps=10) if a.preset == "none" else load_spec(a.preset).solver_config()
     cfg = replace(cfg, device=a.device or cfg.device)
     if a.cg_iterations is not None:
         cfg = replace(cfg, solver=replace(cfg.solver, cg_iterations=a.cg_iterations))
@@ -103,6 +120,7 @@ def main() -> None:
     garment, motion = load_garment(a.garment, body=body), load_motion(a.motion)
     out = {"device": wp.get_device(cfg.device).name, "commit": commit(), "preset": a.preset, "garment": a.garment,
            "vertices": len(garment.vertices), "motion": a.motion, "instances": a.n, "frames": a.frames,
+           "shapes": a.shapes,
            "cg_iterations": cfg.solver.cg_iterations, "runs": {}}
     runs = [] if a.skip_none else [("none", None)]
     runs.append(("self_contact", SelfContactParams()))
@@ -112,11 +130,11 @@ def main() -> None:
                                                                    for k, v in fields.items()})))
     for name, sc in runs:
         run_cfg = replace(cfg, solver=replace(cfg.solver, self_contact=sc))
-        out["runs"][name] = run(garment, body, motion, a.n, a.frames, run_cfg)
+        out["runs"][name] = run(garment, body, motion, a.n, a.frames, run_cfg, a.shapes)
         print(json.dumps({name: out["runs"][name]}), flush=True)
     if a.profile:
         sc_cfg = replace(cfg, solver=replace(cfg.solver, self_contact=SelfContactParams()))
-        out["profile"] = profile(garment, body, motion, a.n, a.frames, sc_cfg)
+        out["profile"] = profile(garment, body, motion, a.n, a.frames, sc_cfg, a.shapes)
         print(json.dumps({"profile": out["profile"]}), flush=True)
     if a.out:
         a.out.write_text(json.dumps(out, indent=1))

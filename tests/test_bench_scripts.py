@@ -38,6 +38,22 @@ def test_bench_solver_with_a_preset_steps_with_the_specs_settings(tmp_path):
     assert row["unresolved"] >= 0 and row["retries"] >= 0 and row["ms_per_frame_median"] > 0
 
 
+
+def test_bench_self_contact_reports_depth_per_instance_of_the_bench_shapes(tmp_path):
+    sys.path.insert(0, str(REPO / "scripts"))
+    from bench_solver import shape_batch
+
+    result = run_script("bench_self_contact.py", "--device", "cpu", "--garment", "tshirt_1k", "--motion", "walk",
+                        "-n", "2", "--frames", "2", "--preset", "none", "--shapes", "bench", "--skip-none",
+                        out=tmp_path / "sc.json")
+    assert result["shapes"] == "bench" and list(result["runs"]) == ["self_contact"]
+    row = result["runs"]["self_contact"]
+    depth = row["depth_regular_mm_per_instance"]
+    assert len(depth) == 2 and max(depth) == row["max_depth_regular_mm"]
+    assert row["instances_deeper_than_1_3_mm"] == [sum(d > 1.0 for d in depth), sum(d > 3.0 for d in depth)]
+    assert row["frames"] == 4  # two instances, two output frames each
+    assert np.allclose(shape_batch(2, 10)[0], 0.0)  # instance 0 is the average shape
+
 def test_profile_solver_with_a_preset(tmp_path):
     result = run_script("profile_solver.py", "--device", "cpu", "--preset", "tiny", "--batches", "1",
                         "--frames", "1", out=tmp_path / "profile.json")

@@ -27,8 +27,12 @@ time of impact of Li et al. (2021)'s additive CCD:
    n . x >= plane, ``offset`` outside the body): its translation starts from their mean
    displacement and is then corrected, by ``BODY_ITERATIONS`` averaged projections, onto the
    intersection of their half-spaces, so that no member ends inside the body (where the
-   half-spaces of a squeezed zone do not meet, the correction is a compromise). This is ARCSim's
-   body-as-obstacle, for translations. Without it the mass-weighted mean displacement carried hem
+   half-spaces of a squeezed zone do not meet, the correction is a compromise). A member that the
+   translation still leaves inside its own half-space (touching or merely near the body: the
+   projection hands half-spaces to both) is then pushed onto it alone, along the body's normal,
+   and a touching member moves no faster into the body than the body's surface there: where an arm
+   squeezes a zone against the torso, the compromise alone let the arm move further into its
+   members substep after substep. This is ARCSim's body-as-obstacle, for translations. Without it the mass-weighted mean displacement carried hem
    vertices that lay on a running thigh into it (up to 30 mm on the T-shirt in ``run``; 21 mm
    with the touching members' mean alone), and a hem layer over them then kept every later
    substep from taking them out. Touching vertices are not made kinematic one by one: where cloth
