@@ -7,9 +7,9 @@ defaults at 10 substeps), through :func:`simgen.sim.simulate_batch`
 once without and once with self-contact (repulsion + impact filter). Per run: wall time, the
 stepping time per output frame (first and last tenth of the clip), output frames with crossing
 edges, the deepest regular vertex inside the body (also per instance, and how many instances pass 1
-and 3 mm). ``--variants`` runs self-contact with other
-parameters too (``thickness=3e-3,stiffness=1e5``: fields of SelfContactParams); ``--cg-iterations``
-overrides the preset's PCG cap. With ``--profile`` the first self-contact run is repeated without
+and 3 mm) and the largest regular strain per instance (how many pass the dataset check's 100%).
+``--variants`` runs self-contact with other parameters too (``thickness=3e-3,stiffness=1e5``:
+fields of SelfContactParams); ``--cg-iterations`` overrides the preset's PCG cap. With ``--profile`` the first self-contact run is repeated without
 CUDA graphs and every call is synchronised and timed: the impact filter's ms per substep and its
 rounds, by quarter of the run, and how many substeps still had impacts after their last round.
 
@@ -51,8 +51,11 @@ def run(garment, body, motion, n, frames, cfg, kind="axis"):
     tenth = max(1, len(step) // 10)
     crossing = np.concatenate([np.asarray(r.stats["crossing_edges"]) for r in results])
     depth = [round(1e3 * float(np.max(r.stats["max_depth_regular"])), 2) for r in results]
+    strain = [round(float(np.max(r.stats["strain_max_regular"])), 3) for r in results]
     return {"depth_regular_mm_per_instance": depth,
             "instances_deeper_than_1_3_mm": [int(sum(d > 1.0 for d in depth)), int(sum(d > 3.0 for d in depth))],
+            "strain_regular_max_per_instance": strain,
+            "instances_strained_over_100_percent": int(sum(e > 1.0 for e in strain)),
             "wall_s": round(wall, 2), "step_ms_first_tenth": round(float(step[:tenth].mean()), 1),
             "step_ms_last_tenth": round(float(step[-tenth:].mean()), 1),
             "frames_with_crossings": int((crossing > 0).sum()), "frames": int(crossing.size),

@@ -52,6 +52,9 @@ def test_bench_self_contact_reports_depth_per_instance_of_the_bench_shapes(tmp_p
     assert len(depth) == 2 and max(depth) == row["max_depth_regular_mm"]
     assert row["instances_deeper_than_1_3_mm"] == [sum(d > 1.0 for d in depth), sum(d > 3.0 for d in depth)]
     assert row["frames"] == 4  # two instances, two output frames each
+    strain = row["strain_regular_max_per_instance"]
+    assert len(strain) == 2 and 0.0 < min(strain) and row["instances_strained_over_100_percent"] == sum(
+        e > 1.0 for e in strain)
     assert np.allclose(shape_batch(2, 10)[0], 0.0)  # instance 0 is the average shape
 
 def test_profile_solver_with_a_preset(tmp_path):

@@ -72,7 +72,6 @@ def collider_kernels(scalar) -> SimpleNamespace:
         touching: wp.array(dtype=wp.int32),
         touch_normal: wp.array(dtype=vec3),
         touch_plane: wp.array(dtype=scalar),
-        touch_speed: wp.array(dtype=scalar),
     ):
         i = wp.tid()
         inst = vertex_instance[i]
@@ -83,16 +82,11 @@ def collider_kernels(scalar) -> SimpleNamespace:
         if use_parts != 0:
             home = vertex_part[i]
         found, d, n, face, bu, bv, own = body_contact(mesh, part_masks, home, x[i], query_distance, pinch_distance)
-        if found != 0 and touching.shape[0] > 0:
-            # The half-space the vertex must stay in: n . x >= n . (closest body point) + offset;
-            # 1 marks a vertex touching the body (within touch_distance), 2 one only near it.
-            if d < scalar(touch_distance):
-                touching[i] = 1
-            elif touching[i] == 0:
-                touching[i] = 2
+        if found != 0 and d < scalar(touch_distance) and touching.shape[0] > 0:
+            # The half-space the vertex must stay in: n . x >= n . (closest body point) + offset.
+            touching[i] = 1
             touch_normal[i] = n
             touch_plane[i] = wp.dot(n, x[i]) - d + offset
-            touch_speed[i] = wp.dot(n, vec3(wp.mesh_eval_velocity(mesh, face, bu, bv)))
         if found == 0 or d >= zero:
             return
         wp.atomic_max(depth_before, inst, -d)
@@ -302,7 +296,7 @@ class BodyCollider:
     def project(self, model, state, *, offset: float = 0.0, query_distance: float = 0.05,
                 pinch_distance: float = ContactParams.pinch_distance, depth=None, count=None,
                 touching=None, touch_distance: float = ContactParams.margin, touch_normal=None,
-                touch_plane=None, touch_speed=None) -> None:
+                touch_plane=None) -> None:
         """Push every free cloth vertex inside its body (signed distance < 0) onto the surface.
 
         model: the ClothModel; state: its ClothState, modified in place: the position moves along
@@ -314,41 +308,37 @@ class BodyCollider:
         depth [m] (model scalar) of the deepest vertex before projection, count (int32) of vertices
         found inside (pinned ones included, though they are not moved). touching: optional (V,) int32,
         set to 1 (never reset here) for every vertex within ``touch_distance`` [m] of its body before
-        projection, inside included, and to 2 (where it is still 0) for one farther but within
-        query_distance; for all of those, touch_normal (V,) vec3 and touch_plane (V,) [m] (model
+        projection, inside included; for those, touch_normal (V,) vec3 and touch_plane (V,) [m] (model
         scalar; given with touching) receive the half-space n . x >= plane that keeps the vertex
-        ``offset`` outside the body, and touch_speed (V,) [m/s] the body surface's velocity along n
-        there (the impact filter's zones respect both).
+        ``offset`` outside the body (the impact filter's zones respect it).
         """
         self.check_model(model)
         if depth is None:
             depth = wp.zeros(model.num_instances, dtype=model.scalar, device=model.device)
         if count is None:
             count = wp.zeros(model.num_instances, dtype=wp.int32, device=model.device)
-        touch = self._touch_outputs(model, touching, touch_normal, touch_plane, touch_speed)
+        touching, touch_normal, touch_plane = self._touch_outputs(model, touching, touch_normal, touch_plane)
         wp.launch(collider_kernels(model.scalar).project, dim=model.num_vertices, device=model.device, inputs=[
             state.positions, state.velocities, model.vertex_instance, model.vertex_pinned, self.mesh_ids,
             offset, query_distance, *part_inputs(model, self.part_masks, pinch_distance), float(touch_distance),
-            depth, count, *touch])
+            depth, count, touching, touch_normal, touch_plane])
 
-    def _touch_outputs(self, model, touching, normal, plane, speed) -> tuple:
-        """project()'s touching outputs, checked: all four (V,) arrays, or none (empty arrays of the
+    def _touch_outputs(self, model, touching, normal, plane) -> tuple:
+        """project()'s touching outputs, checked: all three (V,) arrays, or none (empty arrays of the
         model's types, made once per scalar type)."""
-        outputs = (touching, normal, plane, speed)
-        given = [a is not None for a in outputs]
+        given = [a is not None for a in (touching, normal, plane)]
         if not any(given):
             key = model.scalar
             if key not in self._no_touch:
                 self._no_touch[key] = (wp.empty(0, dtype=wp.int32, device=model.device),
                                        wp.empty(0, dtype=model.vec3, device=model.device),
-                                       wp.empty(0, dtype=model.scalar, device=model.device),
                                        wp.empty(0, dtype=model.scalar, device=model.device))
             return self._no_touch[key]
         n = model.num_vertices
-        if not all(given) or any(a.shape != (n,) for a in outputs):
-            raise InputError(f"BodyCollider.project needs touching, touch_normal, touch_plane and touch_speed "
-                             f"together, each of shape ({n},) (one per cloth vertex), or none of them")
-        return outputs
+        if not all(given) or any(a.shape != (n,) for a in (touching, normal, plane)):
+            raise InputError(f"BodyCollider.project needs touching, touch_normal and touch_plane together, each of "
+                             f"shape ({n},) (one per cloth vertex), or none of them")
+        return touching, normal, plane
 
     def penetration(self, model, positions, *, query_distance: float = 0.05,
                     pinch_distance: float = ContactParams.pinch_distance) -> tuple[np.ndarray, np.ndarray]:

@@ -12,10 +12,13 @@ time of impact of Li et al. (2021)'s additive CCD:
    box of every edge against those of the edges (two BVHs, built once by SAH and refit each
    substep; see ``BVH_CONSTRUCTOR``), same instance only, primitives that share a vertex skipped.
 2. Time of impact of each vertex-triangle and edge-edge pair on the straight paths x0 -> x1, by
-   additive CCD: advance t by (1 - s) d / l_p, where d is the pair's distance at t and l_p bounds
-   the pair's relative displacement over the whole path, until the distance has shrunk below
-   s = 10% of the start distance (an impact: the last safe t is returned) or t passes 1 (none). It
-   is conservative by construction and needs no cubic solve, so it holds in float32.
+   additive CCD: advance t by (1 - s) d / l_p (never past t = 1), where d is the pair's distance
+   at t and l_p bounds the pair's relative displacement over the whole path, until the distance
+   has shrunk below s = 10% of the start distance (an impact: the last safe t is returned) or t
+   reaches 1 with the pair still farther apart (none). It is conservative by construction and
+   needs no cubic solve, so it holds in float32. (Until 2026-11-29 a step could land past t = 1
+   and measure the distance on the paths' extension, calling a pair that ends 0.8 mm apart from
+   3 mm an impact; the false zones this made cost time, strain and depth: BENCHMARKS.md.)
 3. Response: rigid impact zones (Bridson, Fedkiw and Anderson 2002; Harmon et al. 2008, as in
    ARCSim). The vertices of every impacting pair join one zone (a lock-free union-find), and a
    zone moves as one body: every vertex by the zone's mass-weighted mean displacement, with its
@@ -27,12 +30,8 @@ time of impact of Li et al. (2021)'s additive CCD:
    n . x >= plane, ``offset`` outside the body): its translation starts from their mean
    displacement and is then corrected, by ``BODY_ITERATIONS`` averaged projections, onto the
    intersection of their half-spaces, so that no member ends inside the body (where the
-   half-spaces of a squeezed zone do not meet, the correction is a compromise). A member that the
-   translation still leaves inside its own half-space (touching or merely near the body: the
-   projection hands half-spaces to both) is then pushed onto it alone, along the body's normal,
-   and a touching member moves no faster into the body than the body's surface there: where an arm
-   squeezes a zone against the torso, the compromise alone let the arm move further into its
-   members substep after substep. This is ARCSim's body-as-obstacle, for translations. Without it the mass-weighted mean displacement carried hem
+   half-spaces of a squeezed zone do not meet, the correction is a compromise). This is ARCSim's
+   body-as-obstacle, for translations. Without it the mass-weighted mean displacement carried hem
    vertices that lay on a running thigh into it (up to 30 mm on the T-shirt in ``run``; 21 mm
    with the touching members' mean alone), and a hem layer over them then kept every later
    substep from taking them out. Touching vertices are not made kinematic one by one: where cloth
@@ -125,13 +124,13 @@ def impact_kernels(scalar) -> SimpleNamespace:
         t = zero
         step = (one - kept) * (dist - xi) / lp
         for _ in range(MAX_CCD_ITERATIONS):
-            u = t + step
+            u = wp.min(t + step, one)  # never past the path's end (a pair ending apart is no impact)
             dist = pair_distance(kind, a + u * da, b + u * db, c + u * dc, d + u * dd)
-            if t > zero and dist - xi < gap:
+            if dist - xi < gap and (t > zero or u >= one):
                 return t
-            t = u
-            if t > one:
+            if u >= one:
                 return one
+            t = u
             step = scalar(0.9) * (dist - xi) / lp
         return t
 
@@ -247,7 +246,7 @@ def impact_kernels(scalar) -> SimpleNamespace:
         w = mass[i]
         if pinned[i] != 0:
             w = w * scalar(1.0e12)
-        elif touching[i] == 1:
+        elif touching[i] != 0:
             w = w * scalar(1.0e6)
         wp.atomic_add(weight, r, w)
         wp.atomic_add(motion, r, w * (target[i] - x0[i]))
@@ -257,27 +256,13 @@ def impact_kernels(scalar) -> SimpleNamespace:
     def move_zones(x0: wp.array(dtype=vec3), target: wp.array(dtype=vec3), target_v: wp.array(dtype=vec3),
                    pinned: wp.array(dtype=wp.int32), zone: wp.array(dtype=wp.int32), size: wp.array(dtype=wp.int32),
                    weight: wp.array(dtype=scalar), motion: wp.array(dtype=vec3), correction: wp.array(dtype=vec3),
-                   velocity: wp.array(dtype=vec3), touching: wp.array(dtype=wp.int32), normal: wp.array(dtype=vec3),
-                   plane: wp.array(dtype=scalar), speed: wp.array(dtype=scalar), x: wp.array(dtype=vec3),
-                   v: wp.array(dtype=vec3)):
-        # A vertex alone, or pinned, keeps its own motion; a zone translates as one body, and a
-        # member that the translation leaves inside its body half-space (touching or near the body:
-        # a zone squeezed between two body parts) is pushed onto it alone, along the body's normal.
+                   velocity: wp.array(dtype=vec3), x: wp.array(dtype=vec3), v: wp.array(dtype=vec3)):
+        # A vertex alone, or pinned, keeps its own motion; a zone translates as one body.
         i = wp.tid()
         r = zone[i]
         if size[r] > 1 and pinned[i] == 0:
-            p = x0[i] + motion[r] / weight[r] + correction[r]
-            vi = velocity[r] / weight[r]
-            if touching[i] != 0:
-                n = normal[i]
-                short = plane[i] - wp.dot(n, p)
-                if short > zero:
-                    p = p + short * n
-                if short > zero or touching[i] == 1:
-                    # Not into the body faster than its surface moves (relative to it, as the projection).
-                    vi = vi + wp.max(speed[i] - wp.dot(vi, n), zero) * n
-            x[i] = p
-            v[i] = vi
+            x[i] = x0[i] + motion[r] / weight[r] + correction[r]
+            v[i] = velocity[r] / weight[r]
         else:
             x[i] = target[i]
             v[i] = target_v[i]
@@ -290,7 +275,7 @@ def impact_kernels(scalar) -> SimpleNamespace:
         # Each touching member of a zone whose translation would leave it inside its body half-space
         # adds its projection onto that half-space (averaged per zone by body_step).
         i = wp.tid()
-        if touching[i] != 1:
+        if touching[i] == 0:
             return
         r = zone[i]
         if size[r] <= 1:
@@ -366,7 +351,6 @@ class ImpactFilter:
         self.touching = wp.zeros(n, dtype=wp.int32, device=dev)
         self.touch_normal = wp.zeros(n, dtype=model.vec3, device=dev)
         self.touch_plane = wp.zeros(n, dtype=model.scalar, device=dev)
-        self.touch_speed = wp.zeros(n, dtype=model.scalar, device=dev)
         self._correction = wp.zeros(n, dtype=model.vec3, device=dev)
         self._push = wp.zeros(n, dtype=model.vec3, device=dev)
         self._pushes = wp.zeros(n, dtype=wp.int32, device=dev)
@@ -392,8 +376,7 @@ class ImpactFilter:
     def touch_outputs(self) -> dict:
         """The keyword arguments of :meth:`BodyCollider.project` that fill this filter's touching
         vertices and their half-spaces."""
-        return {"touching": self.touching, "touch_normal": self.touch_normal, "touch_plane": self.touch_plane,
-                "touch_speed": self.touch_speed}
+        return {"touching": self.touching, "touch_normal": self.touch_normal, "touch_plane": self.touch_plane}
 
     def _boxes(self, x0, x1, elements, lo, hi) -> None:
         m = self.model
@@ -437,5 +420,5 @@ class ImpactFilter:
                       inputs=[self._push, self._pushes, self._correction])
         wp.launch(k.move_zones, dim=m.num_vertices, device=m.device, inputs=[
             x0, self._target, self._target_v, m.vertex_pinned, self._zone, self._size, self._weight, self._motion,
-            self._correction, self._velocity, *self.touch_outputs().values(), x, state.velocities])
+            self._correction, self._velocity, x, state.velocities])
         wp.launch(k.next_round, dim=1, device=m.device, inputs=[self._round, self.rounds, self._pending])
