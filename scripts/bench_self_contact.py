@@ -1,17 +1,17 @@
 """Self-collision on and off in the same run: stepping time, crossing edges and body depth.
 
 N instances of a garment on the open body doing one library motion (``--shapes axis``: betas 1 =
-0, 0.125, ...; ``--shapes bench``: bench_solver.py's shapes, the first four components uniform in
-[-2, 2]), with a preset's solver settings (default thesis-tshirt; ``--preset none``: the solver's
+0, 0.125, ...; ``--shapes bench``: bench_solver.py's shapes, instance 0 the mean shape, the others' first four
+components uniform in [-2, 2]), with a preset's solver settings (default thesis-tshirt; ``--preset none``: the solver's
 defaults at 10 substeps), through :func:`simgen.sim.simulate_batch`
 once without and once with self-contact (repulsion + impact filter). Per run: wall time, the
 stepping time per output frame (first and last tenth of the clip), output frames with crossing
 edges, the deepest regular vertex inside the body (also per instance, and how many instances pass 1
 and 3 mm) and the largest regular strain per instance (how many pass the dataset check's 100%).
 ``--variants`` runs self-contact with other parameters too (``thickness=3e-3,stiffness=1e5``:
-fields of SelfContactParams); ``--cg-iterations`` overrides the preset's PCG cap. With ``--profile`` the first self-contact run is repeated without
-CUDA graphs and every call is synchronised and timed: the impact filter's ms per substep and its
-rounds, by quarter of the run, and how many substeps still had impacts after their last round.
+fields of SelfContactParams); ``--cg-iterations`` overrides the preset's PCG cap. With
+``--profile`` the first self-contact run is repeated without CUDA graphs and every call is
+synchronised and timed: the impact filter's ms per substep and its rounds, by quarter of the run, and how many substeps still had impacts after their last round.
 
     python scripts/bench_self_contact.py --device cuda:0 --garment tshirt --motion run -n 16 --frames 90 \\
         --profile --out sc.json
@@ -60,7 +60,7 @@ def run(garment, body, motion, n, frames, cfg, kind="axis"):
             "step_ms_last_tenth": round(float(step[-tenth:].mean()), 1),
             "frames_with_crossings": int((crossing > 0).sum()), "frames": int(crossing.size),
             "max_crossing_edges": int(crossing.max()),
-            "max_depth_regular_mm": round(1e3 * max(float(np.max(r.stats["max_depth_regular"])) for r in results), 2)}
+            "max_depth_regular_mm": max(depth)}
 
 
 def profile(garment, body, motion, n, frames, cfg, kind="axis") -> dict:

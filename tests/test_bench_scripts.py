@@ -38,7 +38,6 @@ def test_bench_solver_with_a_preset_steps_with_the_specs_settings(tmp_path):
     assert row["unresolved"] >= 0 and row["retries"] >= 0 and row["ms_per_frame_median"] > 0
 
 
-
 def test_bench_self_contact_reports_depth_per_instance_of_the_bench_shapes(tmp_path):
     sys.path.insert(0, str(REPO / "scripts"))
     from bench_solver import shape_batch
@@ -56,6 +55,7 @@ def test_bench_self_contact_reports_depth_per_instance_of_the_bench_shapes(tmp_p
     assert len(strain) == 2 and 0.0 < min(strain) and row["instances_strained_over_100_percent"] == sum(
         e > 1.0 for e in strain)
     assert np.allclose(shape_batch(2, 10)[0], 0.0)  # instance 0 is the average shape
+
 
 def test_profile_solver_with_a_preset(tmp_path):
     result = run_script("profile_solver.py", "--device", "cpu", "--preset", "tiny", "--batches", "1",

@@ -47,7 +47,6 @@ def test_point_through_triangle_stops_before_the_plane():
     assert 0.1 - 0.2 * t >= 0.1 * 0.1 * 0.99
 
 
-
 def test_a_pair_that_closes_but_ends_apart_has_no_impact():
     # A point 3 mm over the triangle slides 2 mm sideways and ends 0.6 mm over it: closer, but not
     # within 10% of the start distance beyond the 0.1 mm separation (0.39 mm), so no impact. The

@@ -17,8 +17,8 @@ time of impact of Li et al. (2021)'s additive CCD:
    has shrunk below s = 10% of the start distance (an impact: the last safe t is returned) or t
    reaches 1 with the pair still farther apart (none). It is conservative by construction and
    needs no cubic solve, so it holds in float32. (Until 2026-11-29 a step could land past t = 1
-   and measure the distance on the paths' extension, calling a pair that ends 0.8 mm apart from
-   3 mm an impact; the false zones this made cost time, strain and depth: BENCHMARKS.md.)
+   and measure the distance on the paths' extension, calling a pair that ends 0.6 mm apart from
+   3 mm, sliding 2 mm, an impact; the false zones this made cost time and strain: BENCHMARKS.md.)
 3. Response: rigid impact zones (Bridson, Fedkiw and Anderson 2002; Harmon et al. 2008, as in
    ARCSim). The vertices of every impacting pair join one zone (a lock-free union-find), and a
    zone moves as one body: every vertex by the zone's mass-weighted mean displacement, with its
