@@ -1,17 +1,18 @@
 """Self-collision on and off in the same run: stepping time, crossing edges and body depth.
 
 N instances of a garment on the open body doing one library motion (``--shapes axis``: betas 1 =
-0, 0.125, ...; ``--shapes bench``: bench_solver.py's shapes, instance 0 the mean shape, the others' first four
-components uniform in [-2, 2]), with a preset's solver settings (default thesis-tshirt; ``--preset none``: the solver's
-defaults at 10 substeps), through :func:`simgen.sim.simulate_batch`
-once without and once with self-contact (repulsion + impact filter). Per run: wall time, the
-stepping time per output frame (first and last tenth of the clip), output frames with crossing
-edges, the deepest regular vertex inside the body (also per instance, and how many instances pass 1
-and 3 mm) and the largest regular strain per instance (how many pass the dataset check's 100%).
-``--variants`` runs self-contact with other parameters too (``thickness=3e-3,stiffness=1e5``:
-fields of SelfContactParams); ``--cg-iterations`` overrides the preset's PCG cap. With
-``--profile`` the first self-contact run is repeated without CUDA graphs and every call is
-synchronised and timed: the impact filter's ms per substep and its rounds, by quarter of the run, and how many substeps still had impacts after their last round.
+0, 0.125, ...; ``--shapes bench``: bench_solver.py's shapes, instance 0 the mean shape, the
+others' first four components uniform in [-2, 2]), with a preset's solver settings (default
+thesis-tshirt; ``--preset none``: the solver's defaults), through
+:func:`simgen.sim.simulate_batch` once without and once with self-contact (repulsion + impact
+filter). Per run: wall time, the stepping time per output frame (first and last tenth of the
+clip), output frames with crossing edges, the deepest regular vertex inside the body (also per
+instance, and how many instances pass 1 and 3 mm) and the largest regular strain per instance (how
+many pass the dataset check's 100%). ``--variants`` runs self-contact with other parameters too
+(``thickness=3e-3,stiffness=1e5``: fields of SelfContactParams); ``--cg-iterations`` overrides the
+preset's PCG cap. With ``--profile`` the first self-contact run is repeated without CUDA graphs
+and every call is synchronised and timed: the impact filter's ms per substep and its rounds, by
+quarter of the run, and how many substeps still had impacts after their last round.
 
     python scripts/bench_self_contact.py --device cuda:0 --garment tshirt --motion run -n 16 --frames 90 \\
         --profile --out sc.json
@@ -112,10 +113,9 @@ def main() -> None:
     from simgen.garment import load_garment
     from simgen.motion import load_motion
     from simgen.params import SelfContactParams
-
     from simgen.sim import SimulationConfig
 
-    cfg = SimulationConfig(substeps=10) if a.preset == "none" else load_spec(a.preset).solver_config()
+    cfg = SimulationConfig() if a.preset == "none" else load_spec(a.preset).solver_config()
     cfg = replace(cfg, device=a.device or cfg.device)
     if a.cg_iterations is not None:
         cfg = replace(cfg, solver=replace(cfg.solver, cg_iterations=a.cg_iterations))
@@ -123,7 +123,7 @@ def main() -> None:
     garment, motion = load_garment(a.garment, body=body), load_motion(a.motion)
     out = {"device": wp.get_device(cfg.device).name, "commit": commit(), "preset": a.preset, "garment": a.garment,
            "vertices": len(garment.vertices), "motion": a.motion, "instances": a.n, "frames": a.frames,
-           "shapes": a.shapes,
+           "shapes": a.shapes, "betas": shapes(a.shapes, a.n, body.num_betas).tolist(),
            "cg_iterations": cfg.solver.cg_iterations, "runs": {}}
     runs = [] if a.skip_none else [("none", None)]
     runs.append(("self_contact", SelfContactParams()))
